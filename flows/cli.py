@@ -1,0 +1,162 @@
+"""The ``btf`` command line.
+
+Every subcommand that computes runs a Prefect flow on the Dask cluster of the
+execution profile (``infra/local.yaml`` unless ``--cluster`` or
+``$BTF_CLUSTER_CONFIG`` names another). Exit codes: 0 success, 1 bad input
+(the message names the file, array and index), 2 usage error, 3 Prefect or the
+cluster could not start.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Sequence
+
+EXIT_BAD_INPUT = 1
+EXIT_RUNTIME = 3
+
+DESCRIPTION = """\
+btf-pipeline: raw camera-dome captures to bidirectional texture functions.
+
+The embedded default data is a physically based virtual camera dome: `btf demo`
+simulates a small database of materials on the `tiny` dome and writes
+report.json and report.html. Runs use a Dask cluster and a Prefect API chosen
+by an execution profile (default: infra/local.yaml, a 2-worker LocalCluster
+with a temporary Prefect server).
+"""
+
+
+def _add_simulation_options(p: argparse.ArgumentParser) -> None:
+    from btfcore.simulate.devices import DEVICE_NAMES
+    from btfcore.simulate.materials import MATERIAL_CLASSES
+
+    p.add_argument("--device", default="tiny", choices=DEVICE_NAMES,
+                   help="dome preset: tiny (tests, seconds), bonn-dome2 (11 cameras x 198 LEDs x 12 "
+                        "turntable positions = 26,136 pairs), ubo-dome1 (151 x 151) [default: tiny]")
+    p.add_argument("--materials", type=int, default=6, metavar="N",
+                   help=f"number of materials; classes cycle through {', '.join(MATERIAL_CLASSES)} [default: 6]")
+    p.add_argument("--seed", type=int, default=0, help="root seed of materials and noise [default: 0]")
+    p.add_argument("--illumination", default="single", choices=("single", "multiplexed", "both"),
+                   help="single-LED patterns, S-matrix multiplexed patterns, or both [default: single]")
+    p.add_argument("--classes", default=None, metavar="A,B,...",
+                   help="comma-separated material classes to cycle through [default: all]")
+    p.add_argument("--bayer", default=None, choices=("RGGB", "BGGR", "GRBG", "GBRG"),
+                   help="override the device's Bayer layout")
+    p.add_argument("--texture-size", type=int, default=None, metavar="PX",
+                   help="override the rectified texture side (ground truth is also written at 2x)")
+    p.add_argument("--turntable", type=int, default=None, metavar="N",
+                   help="simulate only the first N turntable positions (a pruned run)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="btf", description=DESCRIPTION,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--cluster", default=None, metavar="PROFILE",
+                        help="execution profile YAML (cluster kind, workers, memory, Prefect API) "
+                             "[default: $BTF_CLUSTER_CONFIG or infra/local.yaml]")
+    parser.add_argument("--no-progress", action="store_true", help="hide progress bars")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    p = sub.add_parser("simulate", help="simulate capture stores on a virtual dome",
+                       description="Simulate materials on a virtual camera dome. Writes one capture store "
+                                   "per material (OUT/<id>.zarr, ground truth in its truth/ group), "
+                                   "OUT/database.json, OUT/report.json and OUT/report.html. An unfinished "
+                                   "run resumes where it stopped; finished stores are never overwritten "
+                                   "unless --overwrite is given.")
+    _add_simulation_options(p)
+    p.add_argument("--out", required=True, metavar="PATH", help="output folder of the database")
+    p.add_argument("--overwrite", action="store_true", help="replace finished stores of another config")
+
+    p = sub.add_parser("demo", help="the main job on the embedded default data",
+                       description="Simulate a small database (one material per class on the tiny dome) "
+                                   "and write OUT/report.json and OUT/report.html. Later pipeline stages "
+                                   "join the demo as they land. Re-running resumes or reuses finished work.")
+    p.add_argument("--out", default="demo-output", metavar="DIR", help="output folder [default: demo-output]")
+    p.add_argument("--seed", type=int, default=0, help="root seed [default: 0]")
+    p.add_argument("--materials", type=int, default=6, metavar="N", help="materials to simulate [default: 6]")
+
+    p = sub.add_parser("validate", help="check capture stores and list every problem",
+                       description="Open each capture store, validate it against the btf-capture schema "
+                                   "(docs/capture-store.md) and print every problem found. Exit 1 if any.")
+    p.add_argument("stores", nargs="+", metavar="STORE")
+    p.add_argument("--allow-incomplete", action="store_true", help="accept stores whose run has not finished")
+    return parser
+
+
+def _simulation_config(args: argparse.Namespace):
+    from tasks.simulate import SimulationConfig
+
+    kwargs = dict(device=args.device, n_materials=args.materials, seed=args.seed,
+                  illumination=args.illumination, bayer_pattern=args.bayer,
+                  texture_size=args.texture_size, n_turntable=args.turntable)
+    if args.classes:
+        kwargs["classes"] = tuple(c.strip() for c in args.classes.split(",") if c.strip())
+    return SimulationConfig(**kwargs)
+
+
+def _validate(args: argparse.Namespace) -> int:
+    from tasks.store import validate_capture_store
+
+    failed = 0
+    for path in args.stores:
+        problems = validate_capture_store(path)
+        if args.allow_incomplete:
+            problems = [p for p in problems if p.array not in ("written", "complete")]
+        if problems:
+            failed += 1
+            print(f"{path}: {len(problems)} problem(s)")
+            for problem in problems:
+                where = f"[{problem.index}]" if problem.index else ""
+                print(f"  {problem.array}{where}: expected {problem.expected}, found {problem.found}. {problem.hint}")
+        else:
+            print(f"{path}: valid")
+    return EXIT_BAD_INPUT if failed else 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    if args.command == "validate":
+        return _validate(args)
+
+    from flows.runtime import RuntimeUnavailable, runtime
+
+    try:
+        config = _simulation_config(args) if args.command == "simulate" else None
+    except ValueError as exc:
+        print(f"btf {args.command}: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    start = time.perf_counter()
+    try:
+        with runtime(args.cluster) as (_profile, _url, client):
+            from flows.simulate import demo_flow, simulate_flow
+
+            address = client.scheduler.address
+            progress = not args.no_progress
+            if args.command == "simulate":
+                report = simulate_flow(config, args.out, address, overwrite=args.overwrite, progress=progress)
+                out = args.out
+            else:
+                report = demo_flow(args.out, address, seed=args.seed, n_materials=args.materials,
+                                   progress=progress)
+                out = args.out
+    except RuntimeUnavailable as exc:
+        print(f"btf {args.command}: {exc}", file=sys.stderr)
+        return EXIT_RUNTIME
+    except (ValueError, FileExistsError, FileNotFoundError) as exc:
+        print(f"btf {args.command}: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    summary = {"command": args.command, "out": str(Path(out).resolve()),
+               "report_json": str(Path(out).resolve() / "report.json"),
+               "report_html": str(Path(out).resolve() / "report.html"),
+               "materials": len(report.get("materials", [])),
+               "seconds": round(time.perf_counter() - start, 2)}
+    print(json.dumps(summary, indent=2))
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

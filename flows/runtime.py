@@ -1,0 +1,185 @@
+"""Execution environment of a ``btf`` run: one Prefect API and one Dask cluster.
+
+The cluster and the Prefect API are chosen by a profile file (``infra/local.yaml``
+by default, DESIGN §5), never by code edits. With no Prefect server configured,
+one temporary server is started for the run and its URL is handed to the Dask
+workers, so that no worker starts a server of its own.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterator
+
+import yaml
+
+DEFAULT_PROFILE = Path(__file__).resolve().parents[1] / "infra" / "local.yaml"
+
+#: Environment every Dask worker process starts with: one thread per library
+#: (parallelism comes from Dask) and no huge-page hint (DESIGN §5).
+WORKER_ENVIRON = {
+    "OMP_NUM_THREADS": "1",
+    "MKL_NUM_THREADS": "1",
+    "OPENBLAS_NUM_THREADS": "1",
+    "NUMEXPR_NUM_THREADS": "1",
+    "NUMPY_MADVISE_HUGEPAGE": "0",
+}
+
+
+class RuntimeUnavailable(RuntimeError):
+    """Prefect or the Dask cluster could not be started; the message says why."""
+
+
+@dataclass(frozen=True)
+class Profile:
+    """A parsed execution profile (see ``infra/local.yaml``)."""
+
+    path: str
+    cluster: dict[str, Any] = field(default_factory=dict)
+    prefect: dict[str, Any] = field(default_factory=dict)
+
+
+def load_profile(path: str | os.PathLike | None = None) -> Profile:
+    """Read an execution profile; ``None`` means ``$BTF_CLUSTER_CONFIG`` or the default."""
+    path = Path(path or os.environ.get("BTF_CLUSTER_CONFIG") or DEFAULT_PROFILE)
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except FileNotFoundError:
+        raise RuntimeUnavailable(
+            f"execution profile {path} does not exist; pass --cluster with a file "
+            f"shaped like {DEFAULT_PROFILE}"
+        ) from None
+    except yaml.YAMLError as exc:
+        raise RuntimeUnavailable(f"execution profile {path} is not valid YAML: {exc}") from None
+    if not isinstance(data, dict) or not isinstance(data.get("cluster", {}), dict):
+        raise RuntimeUnavailable(f"execution profile {path}: expected a mapping with a 'cluster' section")
+    return Profile(str(path), dict(data.get("cluster") or {}), dict(data.get("prefect") or {}))
+
+
+def quiet_logs() -> None:
+    """Keep Prefect, Dask and HTTP chatter out of the terminal unless asked for."""
+    os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
+    os.environ.setdefault("PREFECT_LOGGING_TO_API_ENABLED", "false")
+    os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+    os.environ.setdefault("PREFECT_UI_ENABLED", "false")
+    # distributed sets its logger levels from dask config when first imported
+    os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "warning")
+    os.environ.setdefault("DASK_DISTRIBUTED__WORKER__DAEMON", "False")
+    import prefect  # noqa: F401  (prefect configures logging on import; override after it)
+
+    for name in ("distributed", "prefect", "httpx", "uvicorn", "asyncio"):
+        logging.getLogger(name).setLevel(logging.WARNING)
+
+
+def _check_health(api_url: str, timeout: float) -> None:
+    import httpx
+
+    deadline = time.monotonic() + timeout
+    last: Exception | None = None
+    while time.monotonic() < deadline:
+        try:
+            response = httpx.get(f"{api_url.rstrip('/')}/health", timeout=2.0)
+            if response.status_code == 200:
+                return
+            last = RuntimeError(f"HTTP {response.status_code}")
+        except httpx.HTTPError as exc:
+            last = exc
+        time.sleep(0.2)
+    raise RuntimeUnavailable(
+        f"the Prefect API at {api_url} did not answer /health within {timeout:.0f} s ({last}); "
+        "start it (`prefect server start`), fix PREFECT_API_URL, or unset it to use a temporary server"
+    )
+
+
+@contextlib.contextmanager
+def prefect_api(profile: Profile) -> Iterator[str]:
+    """Yield the URL of a Prefect API that answers, starting a temporary one if needed.
+
+    Raises
+    ------
+    RuntimeUnavailable
+        When the configured server does not answer or the temporary one does not
+        start within ``prefect.startup_timeout_s``; never hangs.
+    """
+    from prefect.settings import PREFECT_API_URL, temporary_settings
+
+    timeout = float(profile.prefect.get("startup_timeout_s", 90))
+    url = os.environ.get("PREFECT_API_URL") or profile.prefect.get("api_url")
+    if url:
+        _check_health(url, timeout)
+        with temporary_settings({PREFECT_API_URL: url}):
+            yield url
+        return
+
+    from prefect.server.api.server import SubprocessASGIServer
+
+    server = SubprocessASGIServer()
+    try:
+        server.start(timeout=max(1, int(timeout)))
+    except Exception as exc:  # prefect raises RuntimeError/httpx errors of several kinds
+        server.stop()
+        raise RuntimeUnavailable(
+            f"could not start a temporary Prefect server within {timeout:.0f} s: {exc}. "
+            "Raise prefect.startup_timeout_s in the profile or set PREFECT_API_URL to a running server."
+        ) from None
+    try:
+        with temporary_settings({PREFECT_API_URL: server.api_url}):
+            yield server.api_url
+    finally:
+        server.stop()
+
+
+@contextlib.contextmanager
+def dask_client(profile: Profile, prefect_url: str | None = None) -> Iterator[Any]:
+    """Start the profile's Dask cluster and yield a connected ``distributed.Client``."""
+    import dask
+    from distributed import Client, LocalCluster
+
+    spec = dict(profile.cluster)
+    kind = spec.pop("kind", "local")
+    if kind != "local":
+        raise RuntimeUnavailable(
+            f"{profile.path}: cluster kind {kind!r} is not supported yet (supported: 'local'); "
+            "SLURM and Kubernetes profiles arrive with the cluster issue"
+        )
+    environ = dict(WORKER_ENVIRON)
+    if prefect_url:
+        environ["PREFECT_API_URL"] = prefect_url
+    for key in ("PREFECT_LOGGING_LEVEL", "PREFECT_LOGGING_TO_API_ENABLED", "BTF_SHARED_DATA"):
+        if key in os.environ:
+            environ[key] = os.environ[key]
+    dashboard = bool(spec.pop("dashboard", False))
+    with dask.config.set({"distributed.nanny.pre-spawn-environ": environ,
+                          "distributed.worker.daemon": False}):
+        try:
+            cluster = LocalCluster(
+                n_workers=int(spec.pop("n_workers", 2)),
+                threads_per_worker=int(spec.pop("threads_per_worker", 1)),
+                memory_limit=spec.pop("memory_limit", "4GiB"),
+                processes=bool(spec.pop("processes", True)),
+                dashboard_address=":8787" if dashboard else None,
+                scheduler_kwargs={"dashboard": dashboard},
+                silence_logs=logging.WARNING,
+                **spec,
+            )
+        except Exception as exc:
+            raise RuntimeUnavailable(f"could not start the Dask cluster of {profile.path}: {exc}") from exc
+        try:
+            with Client(cluster) as client:
+                yield client
+        finally:
+            cluster.close()
+
+
+@contextlib.contextmanager
+def runtime(profile_path: str | os.PathLike | None = None) -> Iterator[tuple[Profile, str, Any]]:
+    """Prefect API and Dask client for one run: ``(profile, prefect_url, client)``."""
+    quiet_logs()
+    profile = load_profile(profile_path)
+    with prefect_api(profile) as url, dask_client(profile, url) as client:
+        yield profile, url, client

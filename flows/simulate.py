@@ -1,0 +1,84 @@
+"""Prefect flows of the virtual dome: ``btf simulate`` and ``btf demo``.
+
+Flows only wire stages together. Each stage is one Prefect task that builds
+one Dask computation over all chunks on the cluster whose scheduler address it
+is given (DESIGN §2): one Prefect task per chunk would flood the Prefect
+database.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+from prefect import flow, task
+from prefect.cache_policies import NO_CACHE
+
+from tasks.report import simulation_report, write_json
+from tasks.simulate import SimulationConfig, simulate_database
+
+
+def _progress_bar(desc: str, enabled: bool):
+    from tqdm.auto import tqdm
+
+    bar = tqdm(total=0, desc=desc, unit="view", disable=None if enabled else True, leave=True)
+
+    def update(done: int, total: int) -> None:
+        bar.total = total
+        bar.n = done
+        bar.refresh()
+
+    return bar, update
+
+
+# Retrying the stage resumes it: finished views are skipped, pending ones re-run.
+@task(name="simulate-captures", retries=1, cache_policy=NO_CACHE)
+def simulate_stage(config: SimulationConfig, out_dir: str, scheduler_address: str, overwrite: bool,
+                   progress: bool) -> dict[str, Any]:
+    from distributed import Client
+
+    bar, update = _progress_bar(f"simulate {config.device}", progress)
+    with bar, Client(scheduler_address, set_as_default=False) as client:
+        result = simulate_database(config, out_dir, client, overwrite=overwrite, progress=update)
+    return {"stores": result.stores, "views_rendered": result.views_done,
+            "views_skipped": result.views_skipped, "seconds": round(result.seconds, 3)}
+
+
+@task(name="simulation-report", cache_policy=NO_CACHE)
+def report_stage(config: SimulationConfig, report_dir: str, stores: list[str], run: dict[str, Any]) -> dict[str, Any]:
+    return simulation_report(report_dir, config.build_device(), stores, run)
+
+
+@flow(name="btf-simulate", log_prints=False)
+def simulate_flow(config: SimulationConfig, out_dir: str, scheduler_address: str, overwrite: bool = False,
+                  progress: bool = True, command: str = "simulate", report_dir: str | None = None) -> dict[str, Any]:
+    """Simulate a database of capture stores into ``out_dir`` and write its report.
+
+    The report (``report.json``, ``report.html``) goes to ``report_dir``, by
+    default ``out_dir``.
+    """
+    report_dir = report_dir or out_dir
+    start = time.perf_counter()
+    Path(out_dir).mkdir(parents=True, exist_ok=True)
+    stage = simulate_stage(config, out_dir, scheduler_address, overwrite, progress)
+    run = {"command": command, "config": config.to_json(), "out_dir": str(Path(out_dir).resolve()),
+           "stages": {"simulate": {k: v for k, v in stage.items() if k != "stores"}}}
+    report_start = time.perf_counter()
+    report = report_stage(config, report_dir, stage["stores"], run)
+    report["stages"]["report"] = {"seconds": round(time.perf_counter() - report_start, 3)}
+    report["seconds"] = round(time.perf_counter() - start, 3)
+    write_json(Path(report_dir) / "report.json", report)
+    return report
+
+
+@flow(name="btf-demo", log_prints=False)
+def demo_flow(out_dir: str, scheduler_address: str, seed: int = 0, n_materials: int = 6,
+              progress: bool = True) -> dict[str, Any]:
+    """The main job on the embedded default: a small simulated database and its report.
+
+    Later stages (ingest, models, acquisition) join this flow as they land.
+    """
+    config = SimulationConfig(device="tiny", n_materials=n_materials, seed=seed)
+    return simulate_flow(config, str(Path(out_dir) / "database"), scheduler_address, overwrite=False,
+                         progress=progress, command="demo", report_dir=out_dir)

@@ -1,0 +1,299 @@
+"""Run reports: ``report.json`` for machines, ``report.html`` with PNGs for people.
+
+Figures are made from what the run wrote to disk (capture stores and their
+ground truth), so a report shows the data a later stage will read.
+"""
+
+from __future__ import annotations
+
+import html
+import json
+import math
+from pathlib import Path
+from typing import Any, Sequence
+
+import cv2
+import numpy as np
+
+from btfcore.simulate.devices import Device
+from btfcore.tonemap import srgb_encode, tonemap
+from tasks.store import CaptureStore, open_capture_store
+
+#: Rows of the ground truth read for statistics (a subsample keeps reports cheap
+#: on bonn-dome2, whose truth is ~5 GB per material).
+STAT_ROWS = 1024
+
+
+def _json_default(value: Any) -> Any:
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+
+def write_json(path: str | Path, data: dict[str, Any]) -> Path:
+    """Write plain JSON (numpy values converted, NaN/Inf refused) atomically."""
+    path = Path(path)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2, default=_json_default, allow_nan=False))
+    tmp.replace(path)
+    return path
+
+
+def _save_png(path: Path, rgb: np.ndarray, scale: int = 1) -> str:
+    if scale > 1:
+        rgb = cv2.resize(rgb, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
+    image = rgb[..., ::-1] if rgb.ndim == 3 else rgb
+    if not cv2.imwrite(str(path), np.ascontiguousarray(image)):
+        raise OSError(f"could not write {path}")
+    return path.name
+
+
+def _luminance(rgb: np.ndarray) -> np.ndarray:
+    return rgb @ np.array([0.2126, 0.7152, 0.0722], dtype=rgb.dtype)
+
+
+def material_statistics(store: CaptureStore) -> dict[str, Any]:
+    """Figures of one simulated store: dynamic range, exposures, saturation, exposure quality."""
+    truth = store.group["truth"]["btf"]
+    n_lv = truth.shape[0]
+    rows = np.unique(np.linspace(0, n_lv - 1, min(n_lv, STAT_ROWS)).astype(int))
+    lum = _luminance(np.asarray(truth.get_orthogonal_selection((rows,)), dtype=np.float64))
+    p_lo, p_hi = np.percentile(lum, [0.1, 99.9])
+    times = np.asarray(store.group["exposure_time"][...])
+    meta = store.meta
+    # Exposure quality of the real (noisy) frames of a few views: a sample pixel is
+    # well exposed when one frame has it between 1% and 90% of the sensor's range.
+    span = float(meta.white_level - meta.black_level)
+    well, saturated, views = [], [], 0
+    for t in range(store.n_turn):
+        for c in range(store.n_cam):
+            views += 1
+            if views > 8:
+                break
+            frames, _ = store.read_bracket(t, c, 0)
+            level = (frames.astype(np.float64) - meta.black_level) / span
+            mask = _sample_mask_from_homography(store, t, c)
+            good = ((level > 0.01) & (level < 0.9)).any(axis=0)
+            well.append(float(good[mask].mean()))
+            saturated.append(float((frames[0] >= meta.white_level)[mask].mean()))
+    return {
+        "n_lv": int(n_lv),
+        "dynamic_range": float(p_hi / max(p_lo, 1e-30)),
+        "luminance_p0.1": float(p_lo),
+        "luminance_p99.9": float(p_hi),
+        "exposure_time_s": {"min": float(times.min()), "max": float(times.max())},
+        "well_exposed_fraction_min": float(min(well)),
+        "saturated_in_shortest_fraction_max": float(max(saturated)),
+    }
+
+
+def _sample_mask_from_homography(store: CaptureStore, t: int, c: int) -> np.ndarray:
+    """ROI pixels whose centre maps inside the sample square (from the stored homography)."""
+    rows, cols = store.roi_shape
+    H_inv = np.linalg.inv(np.asarray(store.group["homography"][t, c], dtype=np.float64))
+    r, q = np.mgrid[0:rows, 0:cols]
+    pts = H_inv @ np.stack([q.ravel(), r.ravel(), np.ones(q.size)])
+    x, y = pts[0] / pts[2], pts[1] / pts[2]
+    half = store.meta.sample_size_m / 2
+    return ((np.abs(x) < half) & (np.abs(y) < half)).reshape(rows, cols)
+
+
+def plot_dome(device: Device, path: Path) -> str:
+    """Hemisphere plot of LEDs, cameras and the turntable's view directions."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    def polar(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        v = np.atleast_2d(v)
+        return np.arctan2(v[:, 1], v[:, 0]), np.degrees(np.arccos(np.clip(v[:, 2], -1, 1)))
+
+    fig = plt.figure(figsize=(11, 5))
+    ax = fig.add_subplot(1, 2, 1, projection="polar")
+    leds = device.led_position / np.linalg.norm(device.led_position, axis=1, keepdims=True)
+    cams = device.camera_position / np.linalg.norm(device.camera_position, axis=1, keepdims=True)
+    ax.scatter(*polar(leds), s=14, c="orange", label=f"{device.n_leds} lights", zorder=3)
+    ax.scatter(*polar(cams), s=40, marker="^", c="tab:blue", label=f"{device.n_cam} cameras", zorder=4)
+    views = np.array([device.view_dir(t, c) for t in range(device.n_turn) for c in range(device.n_cam)])
+    if device.n_turn > 1:
+        ax.scatter(*polar(views), s=8, marker="x", c="tab:gray",
+                   label=f"views in sample frame ({device.n_turn} turntable positions)", zorder=2)
+    ax.set_rmax(90)
+    ax.set_rticks([15, 30, 45, 60, 75, 90])
+    ax.set_title(f"{device.name}: top view (radius = theta, degrees)")
+    ax.legend(loc="lower left", bbox_to_anchor=(-0.15, -0.22), fontsize=8)
+
+    ax3 = fig.add_subplot(1, 2, 2, projection="3d")
+    ax3.scatter(*device.led_position.T, s=6, c="orange")
+    ax3.scatter(*device.camera_position.T, s=30, marker="^", c="tab:blue")
+    half = device.sample_size_m / 2
+    square = np.array([[-half, -half, 0], [half, -half, 0], [half, half, 0], [-half, half, 0], [-half, -half, 0]])
+    ax3.plot(*square.T, c="k")
+    radius = float(np.linalg.norm(device.camera_position, axis=1).max())
+    angle = np.linspace(0, 2 * np.pi, 100)
+    ax3.plot(0.15 * radius * np.cos(angle), 0.15 * radius * np.sin(angle), 0 * angle, c="tab:green",
+             label="turntable")
+    ax3.set_box_aspect((1, 1, 0.5))
+    ax3.set_title("dome (metres)")
+    ax3.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path.name
+
+
+def raw_frame_images(store: CaptureStore, out: Path, prefix: str, views: Sequence[tuple[int, int, int]]) -> list[dict]:
+    """Tone-mapped raw frames: each bracket member as the grey mosaic, scaled to the sensor range."""
+    meta = store.meta
+    span = float(meta.white_level - meta.black_level)
+    items = []
+    for t, c, i in views:
+        frames, times = store.read_bracket(t, c, i)
+        tiles = [srgb_encode((f.astype(np.float64) - meta.black_level) / span) for f in frames]
+        strip = np.concatenate([np.pad(tile, 2, constant_values=1.0) for tile in tiles], axis=1)
+        name = _save_png(out / f"{prefix}_raw_t{t}_c{c}_i{i}.png", np.round(strip * 255).astype(np.uint8),
+                         scale=max(1, 256 // frames.shape[-2]))
+        items.append({"file": name, "turntable": t, "camera": c, "illumination": i,
+                      "exposure_time_s": [float(x) for x in times]})
+    return items
+
+
+def pick_lv_pairs(store: CaptureStore) -> list[tuple[int, str]]:
+    """A few telling light/view pairs: frontal, specular, grazing view, grazing light."""
+    light = np.asarray(store.group["truth"]["light_dir"][...])
+    view = np.asarray(store.group["truth"]["view_dir"][...])
+    mirror = light * np.array([-1, -1, 1])
+    picks = {
+        "frontal view, high light": np.argmax(view[:, 2] * 4 + light[:, 2]),
+        "specular": np.argmax(np.sum(mirror * view, axis=1) + 0.1 * view[:, 2]),
+        "grazing view": np.argmin(view[:, 2] - 0.1 * light[:, 2]),
+        "grazing light": np.argmin(light[:, 2] - 0.1 * view[:, 2]),
+    }
+    return [(int(lv), label) for label, lv in picks.items()]
+
+
+def texture_images(store: CaptureStore, out: Path, prefix: str) -> list[dict]:
+    """Ground-truth textures at a few light/view pairs, one white point per material."""
+    truth = store.group["truth"]["btf"]
+    pairs = pick_lv_pairs(store)
+    textures = np.stack([truth[lv] for lv, _ in pairs])
+    white = float(np.percentile(textures, 99.5))
+    items = []
+    for (lv, label), texture in zip(pairs, textures):
+        name = _save_png(out / f"{prefix}_texture_lv{lv}.png", tonemap(texture, white=white),
+                         scale=max(1, 128 // texture.shape[0]))
+        items.append({"file": name, "lv": lv, "label": label})
+    return items
+
+
+def abrdf_image(store: CaptureStore, out: Path, prefix: str) -> dict:
+    """The centre texel's ABRDF laid out as in the thesis' Fig. 1.3 (x: light, y: view)."""
+    truth = store.group["truth"]["btf"]
+    h, w = truth.shape[1:3]
+    column = np.asarray(truth[:, h // 2, w // 2, :])                 # (n_lv, 3)
+    n_views = store.n_turn * store.n_cam
+    image = column.reshape(n_views, store.n_leds, 3)                  # rows: views, cols: lights
+    scale = max(1, int(math.ceil(384 / max(image.shape[:2]))))
+    name = _save_png(out / f"{prefix}_abrdf.png", tonemap(image), scale=scale)
+    return {"file": name, "texel": [h // 2, w // 2], "shape": [n_views, store.n_leds]}
+
+
+def write_html(path: Path, title: str, summary: dict[str, Any], sections: list[dict[str, Any]]) -> Path:
+    """A self-contained HTML page of figure sections (PNG files beside it)."""
+    parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>",
+             "<style>body{font-family:sans-serif;max-width:1200px;margin:auto;padding:1em}"
+             "figure{display:inline-block;margin:6px;text-align:center;font-size:12px}"
+             "img{image-rendering:pixelated;border:1px solid #ccc}"
+             "table{border-collapse:collapse}td,th{border:1px solid #ccc;padding:3px 8px;font-size:13px}"
+             "</style></head><body>", f"<h1>{html.escape(title)}</h1>"]
+    parts.append("<table>" + "".join(
+        f"<tr><th>{html.escape(str(k))}</th><td>{html.escape(json.dumps(v, default=_json_default) if not isinstance(v, str) else v)}</td></tr>"
+        for k, v in summary.items()) + "</table>")
+    for section in sections:
+        parts.append(f"<h2>{html.escape(section['title'])}</h2>")
+        if section.get("text"):
+            parts.append(f"<p>{html.escape(section['text'])}</p>")
+        if section.get("table"):
+            header, *rows = section["table"]
+            parts.append("<table><tr>" + "".join(f"<th>{html.escape(str(h))}</th>" for h in header) + "</tr>"
+                         + "".join("<tr>" + "".join(f"<td>{html.escape(str(v))}</td>" for v in row) + "</tr>"
+                                   for row in rows) + "</table>")
+        for fig in section.get("figures", []):
+            parts.append(f"<figure><img src='{html.escape(fig['file'])}'><figcaption>"
+                         f"{html.escape(fig.get('caption', ''))}</figcaption></figure>")
+    parts.append("</body></html>")
+    path.write_text("\n".join(parts))
+    return path
+
+
+def simulation_report(out_dir: str | Path, device: Device, store_paths: Sequence[str],
+                      run: dict[str, Any]) -> dict[str, Any]:
+    """Write ``report.json`` and ``report.html`` (with PNGs) for a simulated database.
+
+    Returns the report dictionary written to ``report.json``.
+    """
+    out = Path(out_dir)
+    fig_dir = out / "report_files"
+    fig_dir.mkdir(parents=True, exist_ok=True)
+    stores = [open_capture_store(p, mode="r") for p in store_paths]
+    materials = []
+    for path, store in zip(store_paths, stores):
+        stats = material_statistics(store)
+        material = store.group["truth"].attrs["material"]
+        materials.append({"store": str(path), "material_id": material["material_id"],
+                          "class": material["class_name"], "valid": True, **stats})
+
+    sections: list[dict[str, Any]] = [{
+        "title": "Dome",
+        "text": f"{device.n_cam} cameras, {device.n_leds} lights, {device.n_turn} turntable positions: "
+                f"{device.n_lv} light/view pairs; texture {device.texture_shape[0]}x{device.texture_shape[1]}, "
+                f"raw region of interest {device.roi_shape[0]}x{device.roi_shape[1]} px.",
+        "figures": [{"file": f"report_files/{plot_dome(device, fig_dir / 'dome.png')}",
+                     "caption": "lights, cameras and turntable"}],
+    }]
+    first = stores[0]
+    prefix = Path(store_paths[0]).stem
+    last_cam = first.n_cam - 1
+    raw_views = [(0, 0, 0), (0, last_cam, 0), (0, last_cam, first.n_illum // 2)]
+    sections.append({
+        "title": f"Raw frames ({prefix})",
+        "text": "Each strip is one exposure bracket (short to long) of the raw Bayer mosaic, "
+                "black-subtracted and scaled to the sensor range; the sample is the foreshortened "
+                "quadrilateral inside the region of interest.",
+        "figures": [{"file": f"report_files/{item['file']}",
+                     "caption": f"turntable {item['turntable']}, camera {item['camera']}, illumination "
+                                f"{item['illumination']}, t = "
+                                + ", ".join(f"{x:.3g}" for x in item['exposure_time_s']) + " s"}
+                    for item in raw_frame_images(first, fig_dir, prefix, raw_views)],
+    })
+    tex_figs, abrdf_figs = [], []
+    for path, store in zip(store_paths, stores):
+        stem = Path(path).stem
+        tex_figs += [{"file": f"report_files/{item['file']}", "caption": f"{stem}: {item['label']} (lv {item['lv']})"}
+                     for item in texture_images(store, fig_dir, stem)]
+        item = abrdf_image(store, fig_dir, stem)
+        abrdf_figs.append({"file": f"report_files/{item['file']}",
+                           "caption": f"{stem}: texel {tuple(item['texel'])}, {item['shape'][0]} views x {item['shape'][1]} lights"})
+    sections.append({"title": "Ground-truth textures", "figures": tex_figs})
+    sections.append({"title": "ABRDFs (thesis Fig. 1.3 layout: x = light, y = view)", "figures": abrdf_figs})
+    sections.append({
+        "title": "Materials",
+        "table": [["material", "class", "dynamic range (p99.9/p0.1)", "exposures (s)",
+                   "well-exposed (min over views)"]] + [
+            [m["material_id"], m["class"], f"{m['dynamic_range']:.3g}",
+             f"{m['exposure_time_s']['min']:.3g} - {m['exposure_time_s']['max']:.3g}",
+             f"{m['well_exposed_fraction_min']:.4f}"] for m in materials],
+    })
+    report = {"report": "btf-simulate", **run, "device": {
+        "name": device.name, "n_cam": device.n_cam, "n_leds": device.n_leds, "n_turn": device.n_turn,
+        "n_lv": device.n_lv, "texture_shape": list(device.texture_shape), "roi_shape": list(device.roi_shape)},
+        "materials": materials}
+    write_json(out / "report.json", report)
+    summary = {k: v for k, v in run.items() if not isinstance(v, (dict, list))}
+    write_html(out / "report.html", f"btf-pipeline report: {run.get('command', 'simulate')}", summary, sections)
+    return report

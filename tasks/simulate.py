@@ -1,0 +1,366 @@
+"""Chunked generation of virtual-dome capture stores (DESIGN §4).
+
+One material is one capture store ``<out>/<material_id>.zarr`` with its ground
+truth in ``truth/``. The unit of work is one *view* (turntable position,
+camera): it renders the ground-truth textures of all the view's lights at 2x,
+forms every illumination pattern's radiance by summing single-LED radiance
+(before any sensor noise), projects them into the camera's region of interest,
+chooses an exposure bracket as an operator would and exposes the raw Bayer
+frames. Each view task owns whole chunks of the store, so views run in any
+order on any worker and a killed run resumes with the views still pending.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+import zarr
+
+import btfcore
+from btfcore.hadamard import multiplexing_patterns
+from btfcore.simulate.camera import holder_radiance, render_frame, sample_mask
+from btfcore.simulate.devices import DEVICE_NAMES, Device, get_device
+from btfcore.simulate.materials import MATERIAL_CLASSES, MaterialMaps, make_material
+from btfcore.simulate.render import downsample2, horizon_map, render_view
+from btfcore.simulate.sensor import choose_bracket, dark_current_map, dark_frames, expose
+from tasks.store import (
+    CaptureMetadata,
+    CaptureStore,
+    create_capture_store,
+    open_capture_store,
+)
+from tasks.textures import load_texture_sources
+
+ILLUMINATIONS = ("single", "multiplexed", "both")
+#: Seed of the device itself (LED gains, sensor fixed pattern): one physical dome.
+DEVICE_SEED = 20151270
+#: Exposure times of the calibration dark frames, seconds.
+DARK_EXPOSURES = (1e-3, 1e-2, 1e-1, 1.0)
+_MAP_NAMES = ("height", "albedo", "roughness", "specular")
+
+
+@dataclass(frozen=True)
+class SimulationConfig:
+    """Everything that determines a simulated database; its hash keys resumption.
+
+    Parameters
+    ----------
+    device : str
+        One of :data:`btfcore.simulate.devices.DEVICE_NAMES`.
+    n_materials : int
+        Materials to simulate; classes are assigned round-robin over ``classes``.
+    seed : int
+        Root seed: material parameters and sensor noise derive from it.
+    illumination : {'single', 'multiplexed', 'both'}
+        Single-LED patterns, S-matrix patterns, or both stacked (singles first).
+    classes : tuple of str
+        Material classes to cycle through.
+    bayer_pattern : str, optional
+        Override the device's Bayer layout.
+    texture_size : int, optional
+        Override the device's texture side (the ground truth is also at 2x).
+    n_turntable : int, optional
+        Keep only the first positions of the turntable (a pruned run).
+    """
+
+    device: str = "tiny"
+    n_materials: int = 6
+    seed: int = 0
+    illumination: str = "single"
+    classes: tuple[str, ...] = MATERIAL_CLASSES
+    bayer_pattern: str | None = None
+    texture_size: int | None = None
+    n_turntable: int | None = None
+
+    def __post_init__(self) -> None:
+        problems = []
+        if self.device not in DEVICE_NAMES:
+            problems.append(f"device {self.device!r} is unknown; choose one of {', '.join(DEVICE_NAMES)}")
+        if self.n_materials < 1:
+            problems.append(f"n_materials must be >= 1, got {self.n_materials}")
+        if self.illumination not in ILLUMINATIONS:
+            problems.append(f"illumination {self.illumination!r} is unknown; choose one of {', '.join(ILLUMINATIONS)}")
+        bad = [c for c in self.classes if c not in MATERIAL_CLASSES]
+        if bad or not self.classes:
+            problems.append(f"material classes {bad or '[]'} are unknown; choose from {', '.join(MATERIAL_CLASSES)}")
+        if self.texture_size is not None and self.texture_size < 4:
+            problems.append(f"texture_size must be >= 4, got {self.texture_size}")
+        if problems:
+            raise ValueError("invalid simulation config: " + "; ".join(problems))
+
+    def build_device(self) -> Device:
+        """The :class:`Device` this config simulates, with its overrides applied."""
+        overrides: dict[str, Any] = {}
+        if self.texture_size is not None:
+            overrides["texture_shape"] = (self.texture_size, self.texture_size)
+        device = get_device(self.device, bayer_pattern=self.bayer_pattern, **overrides)
+        if self.n_turntable is not None:
+            device = device.with_overrides(turntable_angle_deg=device.turntable_angle_deg[: self.n_turntable])
+        return device
+
+    def to_json(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["classes"] = list(self.classes)
+        return d
+
+
+@dataclass(frozen=True)
+class MaterialSpec:
+    """One material of a simulated database."""
+
+    index: int
+    material_id: str
+    class_name: str
+    seed: int
+
+
+def material_plan(config: SimulationConfig) -> list[MaterialSpec]:
+    """The materials of a database, classes round-robin, seeds derived from the root seed."""
+    specs = []
+    for index in range(config.n_materials):
+        class_name = config.classes[index % len(config.classes)]
+        seed = int(np.random.SeedSequence([config.seed, index]).generate_state(1)[0])
+        specs.append(MaterialSpec(index, f"{index:03d}-{class_name}", class_name, seed))
+    return specs
+
+
+def illumination_patterns(n_leds: int, illumination: str) -> np.ndarray:
+    """Binary patterns ``(n_illum, n_leds)``: identity, S-matrix rows, or both stacked."""
+    singles = np.eye(n_leds, dtype=np.uint8)
+    if illumination == "single":
+        return singles
+    multiplexed = multiplexing_patterns(n_leds)
+    if illumination == "multiplexed":
+        return multiplexed
+    return np.concatenate([singles, multiplexed])
+
+
+def code_version() -> str:
+    """Package version plus the git commit when run from a checkout."""
+    import subprocess
+
+    root = Path(__file__).resolve().parents[1]
+    try:
+        rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True,
+                             text=True, timeout=5, check=True).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        rev = ""
+    return f"{btfcore.__version__}+g{rev}" if rev else btfcore.__version__
+
+
+def config_hash(config: SimulationConfig, spec: MaterialSpec) -> str:
+    """SHA-256 of everything that determines one material's store."""
+    payload = {"config": config.to_json(), "material": asdict(spec), "schema": "btf-capture/1.0"}
+    return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def capture_metadata(config: SimulationConfig, spec: MaterialSpec, device: Device) -> CaptureMetadata:
+    """The store metadata of one simulated material."""
+    sensor = device.sensor
+    return CaptureMetadata(
+        device=device.name,
+        bayer_pattern=sensor.bayer_pattern,
+        black_level=int(sensor.black_level),
+        white_level=int(sensor.white_level),
+        bit_depth=int(sensor.bit_depth),
+        sensor={
+            "gain_e_per_dn": float(sensor.gain_e_per_dn),
+            "read_noise_e": float(sensor.read_noise_e),
+            "full_well_e": float(sensor.full_well_e),
+            "dark_current_e_per_s": float(sensor.dark_current_e_per_s),
+        },
+        sample_size_m=float(device.sample_size_m),
+        texture_shape=tuple(int(v) for v in device.texture_shape),
+        illumination=illumination_patterns(device.n_leds, config.illumination),
+        led_position=device.led_position,
+        camera_K=device.camera_K,
+        camera_R=device.camera_R,
+        camera_t=device.camera_t,
+        turntable_angle=device.turntable_angle_deg,
+        homography=device.homographies(),
+        dark_exposure_time=np.asarray(DARK_EXPOSURES, dtype=np.float64),
+        n_exp=int(sensor.n_exposures),
+        roi_shape=tuple(int(v) for v in device.roi_shape),
+        provenance={
+            "code_version": code_version(),
+            "config_hash": config_hash(config, spec),
+            "seed": int(spec.seed),
+            "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+            "source": "simulator",
+            "simulation": config.to_json(),
+            "material_id": spec.material_id,
+            "material_class": spec.class_name,
+        },
+    )
+
+
+def _camera_dark_map(device: Device, camera: int) -> np.ndarray:
+    rng = np.random.default_rng([DEVICE_SEED, camera])
+    return dark_current_map(device.sensor, device.roi_shape, rng)
+
+
+def prepare_material(store_path: str, config: SimulationConfig, spec: MaterialSpec) -> str:
+    """Draw the material, write its maps, horizon map, directions and dark frames.
+
+    Idempotent: everything written is a deterministic function of the config.
+    """
+    device = config.build_device()
+    store = open_capture_store(store_path, mode="r+", require_complete=False)
+    h, w = device.texture_shape
+    maps = make_material(spec.class_name, spec.seed, (2 * h, 2 * w), load_texture_sources())
+    truth = store.group["truth"]
+    for name in _MAP_NAMES:
+        arr = np.ascontiguousarray(getattr(maps, name), dtype=np.float32)
+        truth.create_array(f"maps_{name}", shape=arr.shape, dtype=arr.dtype, chunks=arr.shape,
+                           overwrite=True)[...] = arr
+    horizon = horizon_map(maps.height)
+    truth.create_array("maps_horizon", shape=horizon.shape, dtype=np.float32, chunks=horizon.shape,
+                       overwrite=True)[...] = horizon
+    truth.attrs["material"] = json.loads(json.dumps({
+        "class_name": maps.class_name, "f0": [float(v) for v in maps.f0], "params": maps.params,
+        "seed": spec.seed, "material_id": spec.material_id}))
+    store.write_truth_directions(*device.lv_directions())
+    darks = np.stack([
+        dark_frames(device.sensor, _camera_dark_map(device, c), np.asarray(DARK_EXPOSURES),
+                    device.roi_shape, np.random.default_rng([config.seed, spec.index, c, 1 << 20]))
+        for c in range(device.n_cam)
+    ])
+    store.write_dark_frames(darks)
+    return store_path
+
+
+def load_material_maps(store: CaptureStore) -> tuple[MaterialMaps, np.ndarray]:
+    """Read the material maps and horizon map back from a store's ``truth/``."""
+    truth = store.group["truth"]
+    attrs = truth.attrs["material"]
+    maps = MaterialMaps(
+        class_name=attrs["class_name"],
+        f0=np.asarray(attrs["f0"], dtype=np.float32),
+        params=attrs["params"],
+        **{name: truth[f"maps_{name}"][...] for name in _MAP_NAMES},
+    )
+    return maps, truth["maps_horizon"][...]
+
+
+def simulate_view(store_path: str, config: SimulationConfig, spec: MaterialSpec, turntable: int,
+                  camera: int, _prepared: Any = None) -> tuple[int, int]:
+    """Render, project and expose every illumination of one view; write its chunks."""
+    device = config.build_device()
+    store = open_capture_store(store_path, mode="r+", require_complete=False)
+    maps, horizon = load_material_maps(store)
+    light_dirs = device.light_dirs(turntable)
+    truth_2x = render_view(maps, device.view_dir(turntable, camera), light_dirs, horizon)
+    store.write_truth_view(turntable, camera, downsample2(truth_2x), truth_2x)
+
+    # Light superposes: each pattern's radiance is the weighted sum of its LEDs'
+    # radiance, formed before the sensor adds noise (DESIGN §4).
+    weights = store.meta.illumination.astype(np.float32)                    # (n_illum, n_leds)
+    gain = device.led_rgb_gain.astype(np.float32)                           # (n_leds, 3)
+    texture = np.einsum("il,lc,lhwc->ihwc", weights, gain, truth_2x, optimize=True)
+    background = weights @ (gain * holder_radiance(light_dirs)[:, None])    # (n_illum, 3)
+    frames = render_frame(texture, background, device.homography(turntable, camera),
+                          device.roi_shape, device.sample_size_m)
+    mask = sample_mask(device, turntable, camera)
+    times = choose_bracket(frames, device.sensor, mask=mask)                # (n_illum, n_exp)
+    rng = np.random.default_rng([config.seed, spec.index, turntable, camera])
+    raw = expose(frames[:, None], times, device.sensor, _camera_dark_map(device, camera), rng)
+    store.write_bracket(turntable, camera, raw, times)
+    return turntable, camera
+
+
+@dataclass
+class SimulationResult:
+    """What a simulation run produced and how long it took."""
+
+    out_dir: str
+    stores: list[str]
+    materials: list[dict[str, Any]]
+    views_done: int
+    views_skipped: int
+    seconds: float
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+def open_or_create(out_dir: Path, config: SimulationConfig, spec: MaterialSpec, device: Device,
+                   overwrite: bool) -> CaptureStore:
+    """Create a material's store, or reopen an unfinished one of the same config to resume."""
+    return create_capture_store(out_dir / f"{spec.material_id}.zarr", capture_metadata(config, spec, device),
+                                with_truth=True, overwrite=overwrite)
+
+
+def simulate_database(config: SimulationConfig, out_dir: str | Path, client: Any, *,
+                      overwrite: bool = False,
+                      progress: Callable[[int, int], None] | None = None) -> SimulationResult:
+    """Simulate every material of ``config`` into ``out_dir`` on a Dask cluster.
+
+    Finished stores are left alone (they are reported as skipped); unfinished
+    ones resume with their pending views only.
+
+    Parameters
+    ----------
+    client : distributed.Client
+        Where the per-view work runs.
+    progress : callable, optional
+        Called as ``progress(done, total)`` after each finished view.
+    """
+    from distributed import as_completed
+
+    start = time.perf_counter()
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    device = config.build_device()
+    futures, stores, skipped, records = [], [], 0, []
+    for spec in material_plan(config):
+        path = out_dir / f"{spec.material_id}.zarr"
+        store = None if overwrite else _finished_store(path, config, spec)
+        if store is None:
+            store = open_or_create(out_dir, config, spec, device, overwrite)
+            pending = store.pending_views()
+            prepared = client.submit(prepare_material, str(path), config, spec, pure=False,
+                                     key=f"prepare-{spec.material_id}-{time.time_ns()}")
+            for t, c in pending:
+                futures.append(client.submit(simulate_view, str(path), config, spec, t, c, prepared,
+                                             pure=False))
+            skipped += device.n_turn * device.n_cam - len(pending)
+        else:
+            skipped += device.n_turn * device.n_cam
+        stores.append(str(path))
+        records.append({"material_id": spec.material_id, "class": spec.class_name, "seed": spec.seed,
+                        "store": str(path)})
+    total = len(futures)
+    for done, future in enumerate(as_completed(futures), 1):
+        future.result()  # re-raises a worker's error here, naming the view
+        if progress is not None:
+            progress(done, total)
+    for path in stores:
+        store = open_capture_store(path, mode="r+", require_complete=False)
+        if not store.group.attrs.get("complete", False):
+            store.mark_complete()
+    index = {"schema": "btf-database", "schema_version": "1.0", "simulation": config.to_json(),
+             "materials": records}
+    (out_dir / "database.json").write_text(json.dumps(index, indent=2))
+    return SimulationResult(str(out_dir), stores, records, total, skipped, time.perf_counter() - start)
+
+
+def _finished_store(path: Path, config: SimulationConfig, spec: MaterialSpec) -> CaptureStore | None:
+    """A complete store of the same config at ``path``, else ``None``."""
+    if not path.exists():
+        return None
+    try:
+        store = open_capture_store(path, mode="r", require_complete=True)
+    except Exception:
+        return None
+    if store.group.attrs.get("provenance", {}).get("config_hash") != config_hash(config, spec):
+        return None
+    return store
+
+
+def read_truth(store: CaptureStore, lv: Sequence[int] | slice = slice(None)) -> np.ndarray:
+    """Ground-truth BTF rows ``(n, h, w, 3)`` of a simulated store."""
+    return np.asarray(store.group["truth"]["btf"][lv])
