@@ -26,8 +26,9 @@ test: $(STAMP)
 	if [ $$rc -eq 5 ]; then echo "pytest collected no tests (exit 5); nothing was checked"; exit 0; fi; \
 	exit $$rc
 
+# Speed is measured here, never in tests; results go to docs/benchmarks.md.
 bench: $(STAMP)
-	$(BIN)/python benchmarks/run.py
+	@for f in benchmarks/bench_*.py; do echo "== $$f"; $(BIN)/python $$f || exit 1; done
 
 clean:
 	rm -rf $(VENV) $(OUT) .pytest_cache

@@ -20,7 +20,6 @@ from pathlib import Path
 from typing import Any, Callable, Sequence
 
 import numpy as np
-import zarr
 
 import btfcore
 from btfcore.hadamard import multiplexing_patterns
@@ -214,17 +213,11 @@ def prepare_material(store_path: str, config: SimulationConfig, spec: MaterialSp
     store = open_capture_store(store_path, mode="r+", require_complete=False)
     h, w = device.texture_shape
     maps = make_material(spec.class_name, spec.seed, (2 * h, 2 * w), load_texture_sources())
-    truth = store.group["truth"]
     for name in _MAP_NAMES:
-        arr = np.ascontiguousarray(getattr(maps, name), dtype=np.float32)
-        truth.create_array(f"maps_{name}", shape=arr.shape, dtype=arr.dtype, chunks=arr.shape,
-                           overwrite=True)[...] = arr
-    horizon = horizon_map(maps.height)
-    truth.create_array("maps_horizon", shape=horizon.shape, dtype=np.float32, chunks=horizon.shape,
-                       overwrite=True)[...] = horizon
-    truth.attrs["material"] = json.loads(json.dumps({
-        "class_name": maps.class_name, "f0": [float(v) for v in maps.f0], "params": maps.params,
-        "seed": spec.seed, "material_id": spec.material_id}))
+        store.write_truth_map(name, np.ascontiguousarray(getattr(maps, name), dtype=np.float32))
+    store.write_truth_map("horizon", horizon_map(maps.height))
+    store.set_truth_material({"class_name": maps.class_name, "f0": [float(v) for v in maps.f0],
+                              "params": maps.params, "seed": spec.seed, "material_id": spec.material_id})
     store.write_truth_directions(*device.lv_directions())
     darks = np.stack([
         dark_frames(device.sensor, _camera_dark_map(device, c), np.asarray(DARK_EXPOSURES),
@@ -237,7 +230,7 @@ def prepare_material(store_path: str, config: SimulationConfig, spec: MaterialSp
 
 def load_material_maps(store: CaptureStore) -> tuple[MaterialMaps, np.ndarray]:
     """Read the material maps and horizon map back from a store's ``truth/``."""
-    truth = store.group["truth"]
+    truth = store.truth
     attrs = truth.attrs["material"]
     maps = MaterialMaps(
         class_name=attrs["class_name"],
@@ -363,4 +356,4 @@ def _finished_store(path: Path, config: SimulationConfig, spec: MaterialSpec) ->
 
 def read_truth(store: CaptureStore, lv: Sequence[int] | slice = slice(None)) -> np.ndarray:
     """Ground-truth BTF rows ``(n, h, w, 3)`` of a simulated store."""
-    return np.asarray(store.group["truth"]["btf"][lv])
+    return np.asarray(store.truth["btf"][lv])

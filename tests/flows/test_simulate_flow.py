@@ -1,0 +1,85 @@
+"""The simulate flow end to end on `tiny`, under real Prefect and a real LocalCluster."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from tasks.store import open_capture_store
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_flow_writes_valid_stores_and_reports(tiny_database):
+    config, out, report = tiny_database
+    stores = sorted(out.glob("*.zarr"))
+    assert [p.name for p in stores] == ["000-stone.zarr", "001-metal.zarr"]
+    for path in stores:
+        store = open_capture_store(path)  # validates, requires complete
+        assert store.has_truth
+    data = json.loads((out / "report.json").read_text())
+    assert data["device"]["n_lv"] == config.build_device().n_lv
+    assert len(data["materials"]) == 2
+    for material in data["materials"]:
+        # the BTF's dynamic range bar (issue 2): at least 1e3 within one material
+        assert material["dynamic_range"] >= 1e3, material
+        # the operator's brackets expose every sample pixel well at least once
+        assert material["well_exposed_fraction_min"] > 0.99, material
+    html = (out / "report.html").read_text()
+    images = re.findall(r"src='([^']+)'", html)
+    assert len(images) >= 2 + 3 + 2 * 4 + 2  # dome, raw strips, textures, ABRDFs
+    for name in images:
+        assert (out / name).stat().st_size > 500, name
+    assert (out / "database.json").is_file()
+
+
+def _btf(*args, env=None, timeout=300):
+    return subprocess.run([sys.executable, "-m", "flows.cli", *args], cwd=ROOT, capture_output=True,
+                          text=True, timeout=timeout, env={**os.environ, **(env or {})})
+
+
+@pytest.mark.parametrize("command", [[], ["simulate"], ["demo"], ["validate"]])
+def test_every_subcommand_explains_itself(command):
+    result = _btf(*command, "--help")
+    assert result.returncode == 0, result.stderr
+    assert "usage: btf" in result.stdout
+    assert len(result.stdout) > 300
+
+
+def test_cli_simulate_and_validate(tmp_path):
+    out = tmp_path / "db"
+    result = _btf("--no-progress", "simulate", "--device", "tiny", "--materials", "1", "--seed", "4",
+                  "--turntable", "1", "--classes", "carpet", "--out", str(out))
+    assert result.returncode == 0, result.stderr[-3000:]
+    summary = json.loads(result.stdout)
+    assert Path(summary["report_html"]).is_file() and Path(summary["report_json"]).is_file()
+    assert "INFO" not in result.stderr  # quiet logs by default
+    check = _btf("validate", str(out / "000-carpet.zarr"))
+    assert check.returncode == 0 and "valid" in check.stdout
+    # a corrupted store: validate names the array and exits 1
+    (out / "000-carpet.zarr" / "exposure_time" / "zarr.json").unlink()
+    check = _btf("validate", str(out / "000-carpet.zarr"))
+    assert check.returncode == 1 and "exposure_time" in check.stdout
+
+
+def test_cli_reports_bad_arguments(tmp_path):
+    result = _btf("simulate", "--materials", "0", "--out", str(tmp_path))
+    assert result.returncode == 1
+    assert "n_materials must be >= 1" in result.stderr
+
+
+def test_cli_exits_when_prefect_cannot_start(tmp_path):
+    profile = tmp_path / "profile.yaml"
+    profile.write_text("cluster: {kind: local, n_workers: 1}\nprefect: {api_url: null, startup_timeout_s: 3}\n")
+    # nothing listens on port 9: the configured API never answers
+    result = _btf("--cluster", str(profile), "simulate", "--out", str(tmp_path / "x"),
+                  env={"PREFECT_API_URL": "http://127.0.0.1:9/api"}, timeout=120)
+    assert result.returncode == 3
+    assert "Prefect API at http://127.0.0.1:9/api did not answer" in result.stderr
+    assert not (tmp_path / "x").exists()
