@@ -659,9 +659,10 @@ def _spread_rings(n_total: int, thetas: np.ndarray, avoid: np.ndarray) -> tuple[
 def _tiny(sensor: SensorSpec) -> Device:
     cam_theta = np.array([0.0, 25.0, 50.0, 75.0])
     cam_phi = np.zeros(4)
-    # 13 LEDs on three rings, azimuths offset from the camera meridian, plus
-    # 3 LEDs exactly opposite the cameras at 25/50/75 deg (mirror reflection).
-    ring_t, ring_p = ring_directions([15.0, 40.0, 65.0], [4, 5, 4], [45.0, 18.0, 45.0])
+    # 13 LEDs on four rings, azimuths offset from the camera meridian, down to a
+    # grazing 80 deg ring as on a real dome (long cast shadows), plus 3 LEDs
+    # exactly opposite the cameras at 25/50/75 deg (mirror reflection).
+    ring_t, ring_p = ring_directions([15.0, 40.0, 65.0, 80.0], [3, 4, 3, 3], [60.0, 45.0, 30.0, 90.0])
     led_theta = np.concatenate([ring_t, cam_theta[1:]])
     led_phi = np.concatenate([ring_p, np.full(3, 180.0)])
     return _build("tiny", cam_theta, cam_phi, led_theta, led_phi, radius=0.65, sample_size_m=0.05,

@@ -319,7 +319,7 @@ def _leather(rng, shape, sources, params):
     sigma = float(rng.uniform(0.002, 0.004))  # rounding of the pebbles, side units
     grain = ndimage.gaussian_filter(grain, sigma * W, mode="reflect")
     grain, gamma = _contrast(rng, grain, (0.6, 1.0))  # gamma < 1: rounded tops, narrow creases
-    amp = float(rng.uniform(0.003, 0.008))  # relief, side units
+    amp = float(rng.uniform(0.004, 0.012))  # relief, side units
     height = grain * amp * W
 
     tone, _crop2 = _crop(rng, _get_source(sources, "grass"), shape, (0.5, 1.0))
@@ -329,9 +329,9 @@ def _leather(rng, shape, sources, params):
     mod = (0.65 + 0.5 * grain) * (0.9 + 0.2 * (tone - 0.5))  # creases darker
     albedo = np.asarray(base)[None, None, :] * mod[..., None]
 
-    rough0 = float(rng.uniform(0.3, 0.5))
+    rough0 = float(rng.uniform(0.1, 0.25))  # finished (top-coated) leather has a sheen
     roughness = rough0 * (0.85 + 0.3 * (1.0 - grain))  # creases rougher
-    spec0 = float(rng.uniform(0.05, 0.3))
+    spec0 = float(rng.uniform(0.5, 1.0))
     specular = spec0 * (0.6 + 0.8 * grain)  # worn tops glossier
     params.update(
         source=src, crop=crop, tone_source="grass", tone_crop=_crop2, smoothing_side=sigma,
@@ -351,11 +351,11 @@ def _block_mean(x: np.ndarray, f: int) -> np.ndarray:
 
 def _cloth(rng, shape, sources, params):
     H, W = shape
-    n = int(rng.integers(16, 40))  # threads across the side
+    n = int(rng.integers(10, 24))  # threads across the side (coarse weaves: canvas, tweed)
     pu, pv = (float(v) for v in rng.uniform(0.0, 1.0, 2))
     width = float(rng.uniform(0.65, 0.95))  # thread width / period
     lift = float(rng.uniform(0.3, 0.8))  # undulation / thread thickness
-    thick_side = float(rng.uniform(0.25, 0.45)) / n  # thread thickness, side units
+    thick_side = float(rng.uniform(0.45, 0.8)) / n  # thread thickness, side units
     # evaluate the weave with >= 8 samples per thread and area-average it, so
     # that maps at different resolutions describe the same (unaliased) cloth
     ss = int(np.clip(math.ceil(8.0 * n / min(H, W)), 1, 8))
@@ -390,9 +390,9 @@ def _cloth(rng, shape, sources, params):
     shade = shade * (1.0 - 0.6 * gap)  # gaps between threads are dark
     albedo = col * shade[..., None]
 
-    rough0 = float(rng.uniform(0.6, 0.9))
+    rough0 = float(rng.uniform(0.3, 0.6))  # synthetic and silk fibres have a sheen
     roughness = rough0 * (0.9 + 0.2 * fibre)
-    spec0 = float(rng.uniform(0.01, 0.08))
+    spec0 = float(rng.uniform(0.2, 0.6))
     specular = spec0 * (1.0 - gap)
     params.update(
         weave="plain", threads_across=n, phase=[pu, pv], thread_width=width, lift=lift,
@@ -428,9 +428,9 @@ def _wood(rng, shape, sources, params):
     pores = _normalise(ndimage.gaussian_filter(lum, 0.002 * W, mode="reflect"))
     amp = float(rng.uniform(0.0005, 0.0015))  # nearly flat, side units
     height = pores * amp * W  # open pores (dark grain) lie low
-    rough0 = float(rng.uniform(0.1, 0.3))
+    rough0 = float(rng.uniform(0.03, 0.07))  # clear varnish coat: a sharp highlight
     roughness = rough0 * (0.9 + 0.2 * (1.0 - pores))
-    spec0 = float(rng.uniform(0.3, 0.8))  # varnish
+    spec0 = float(rng.uniform(0.7, 1.0))  # varnish
     specular = np.full(shape, spec0)
     params.update(amplitude_side=amp, roughness_base=rough0, specular_base=spec0)
     return height, albedo, roughness, specular, [DIELECTRIC_F0] * 3

@@ -41,6 +41,7 @@ from .materials import MaterialMaps
 __all__ = [
     "LED_ANGULAR_RADIUS_DEG",
     "HORIZON_MIN_ELEVATION_DEG",
+    "INDIRECT_SCALE",
     "SurfaceView",
     "horizon_map",
     "prepare_view",
@@ -57,9 +58,9 @@ LED_ANGULAR_RADIUS_DEG = 0.5
 #: :func:`horizon_map` resolves exactly.
 HORIZON_MIN_ELEVATION_DEG = 3.0
 
-#: Fraction of the one-bounce estimate kept in the indirect term (surfaces
-#: that occlude a point lie in the same cavity and receive less than the
-#: mean irradiance; see docs/simulator-physics.md).
+#: Weight of the one-bounce indirect term.  A modelling choice, not a
+#: measured constant: it keeps inter-reflection a small correction to the
+#: direct light (see docs/simulator-physics.md, "Indirect light").
 INDIRECT_SCALE = 0.5
 
 #: Smallest view elevation sine accepted by :func:`prepare_view`.
@@ -108,30 +109,38 @@ def _gather(img: np.ndarray, setup) -> np.ndarray:
     return out
 
 
-def _shift_sample(hp: np.ndarray, pad: int, dr: float, dc: float, out: np.ndarray, tmp: np.ndarray) -> np.ndarray:
-    """Bilinear sample of the padded map at ``(i + dr, j + dc)`` for every pixel.
+def _mirror_extend(h: np.ndarray) -> np.ndarray:
+    """``(3H + 1, 3W + 1)`` mirror extension: one full period ``(2H, 2W)`` plus a map."""
+    H, W = h.shape
+    return np.pad(h, ((0, 2 * H + 1), (0, 2 * W + 1)), mode="symmetric")
+
+
+def _shift_sample(hext: np.ndarray, dr: float, dc: float, out: np.ndarray, tmp: np.ndarray) -> np.ndarray:
+    """Bilinear sample of the mirrored map at ``(i + dr, j + dc)`` for every pixel.
 
     The offset is the same for all pixels, so bilinear interpolation is a
-    weighted sum of four shifted slices of the mirror-padded map.
+    weighted sum of four shifted slices of :func:`_mirror_extend`'s array
+    (the mirrored map is periodic with period ``(2H, 2W)``, so any offset,
+    however large, is reduced modulo the period).
     """
     H, W = out.shape
     r0 = math.floor(dr)
     c0 = math.floor(dc)
     fr = dr - r0
     fc = dc - c0
-    r = pad + r0
-    c = pad + c0
-    a = hp[r : r + H, c : c + W]
+    r = r0 % (2 * H)
+    c = c0 % (2 * W)
+    a = hext[r : r + H, c : c + W]
     if fr == 0.0 and fc == 0.0:
         np.copyto(out, a)
         return out
-    b = hp[r : r + H, c + 1 : c + 1 + W]
+    b = hext[r : r + H, c + 1 : c + 1 + W]
     np.multiply(a, (1 - fr) * (1 - fc), out=out)
     np.multiply(b, (1 - fr) * fc, out=tmp)
     out += tmp
     if fr != 0.0:
-        cc = hp[r + 1 : r + 1 + H, c : c + W]
-        d = hp[r + 1 : r + 1 + H, c + 1 : c + 1 + W]
+        cc = hext[r + 1 : r + 1 + H, c : c + W]
+        d = hext[r + 1 : r + 1 + H, c + 1 : c + 1 + W]
         np.multiply(cc, fr * (1 - fc), out=tmp)
         out += tmp
         np.multiply(d, fr * fc, out=tmp)
@@ -221,8 +230,7 @@ def horizon_map(
     out = np.zeros((n_azimuth, H, W), np.float32)
     if span == 0.0:
         return out
-    pad = int(math.ceil(n_steps * max(1.0, ry))) + 2
-    hp = np.pad(h, pad, mode="symmetric")
+    hext = _mirror_extend(h)
     room = np.float32(h.max()) - h  # eq. stop test: tan(eta) * s >= max(h) - h
     best = np.empty((H, W), np.float32)
     smp = np.empty((H, W), np.float32)
@@ -232,7 +240,7 @@ def horizon_map(
         cx, cy = math.cos(phi), math.sin(phi)
         best.fill(0.0)
         for s in range(1, n_steps + 1):
-            _shift_sample(hp, pad, -s * cy * ry, s * cx, smp, tmp)
+            _shift_sample(hext, -s * cy * ry, s * cx, smp, tmp)
             smp -= h
             smp *= np.float32(1.0 / s)  # eq. slope (h(p + s d) - h(p)) / s
             np.maximum(best, smp, out=best)
@@ -350,9 +358,7 @@ def _march(h: np.ndarray, v: np.ndarray, z_ref: float, step: float, n_bisect: in
     n = max(1, int(math.ceil((t_top - t_bot) * speed / step)))
     n = min(n, 8192)
     dt = (t_top - t_bot) / n
-    reach = max(abs(t_top), abs(t_bot)) * max(abs(vx), abs(vy) * ry)
-    pad = int(math.ceil(reach)) + 2
-    hp = np.pad(h, pad, mode="symmetric")
+    hext = _mirror_extend(h)
 
     smp = np.empty((H, W), np.float32)
     tmp = np.empty((H, W), np.float32)
@@ -364,11 +370,11 @@ def _march(h: np.ndarray, v: np.ndarray, z_ref: float, step: float, n_bisect: in
     d_lo = np.zeros((H, W), np.float32)
     d_hi = np.zeros((H, W), np.float32)
 
-    _shift_sample(hp, pad, -t_top * vy * ry, t_top * vx, smp, tmp)
+    _shift_sample(hext, -t_top * vy * ry, t_top * vx, smp, tmp)
     np.subtract(np.float32(z_ref + t_top * vz), smp, out=d_prev)
     for k in range(1, n + 1):
         t = t_top - k * dt
-        _shift_sample(hp, pad, -t * vy * ry, t * vx, smp, tmp)
+        _shift_sample(hext, -t * vy * ry, t * vx, smp, tmp)
         np.subtract(np.float32(z_ref + t * vz), smp, out=d_cur)  # ray height - surface height
         np.less_equal(d_cur, 0.0, out=newly)
         newly &= ~found
@@ -593,7 +599,7 @@ def shade(view: SurfaceView, light_dirs: np.ndarray, out: np.ndarray | None = No
 
         L = \\Big(\\frac{\\rho}{\\pi} + k_s \\frac{D\\,F}{\\Lambda_l \\Lambda_v}\\Big)
             \\max(n \\cdot l, 0)\\, V
-            + \\frac{\\rho}{\\pi}\\, \\bar\\rho\\, (1 - V_{sky})\\, \\bar E
+            + s_{ind} \\frac{\\rho}{\\pi}\\, \\bar\\rho\\, (1 - V_{sky})\\, \\bar E
 
     .. math::
 
@@ -615,7 +621,9 @@ def shade(view: SurfaceView, light_dirs: np.ndarray, out: np.ndarray | None = No
     part ``1 - V_sky`` of the hemisphere shows surface of mean albedo
     ``rho_bar`` lit by the material's mean direct irradiance
     ``E_bar = mean(max(n . l, 0) V)`` over a view-independent subsample of
-    the map (``E_bar = l_z`` for a flat sample).
+    the map (``E_bar = l_z`` for a flat sample), scaled by
+    ``s_ind =`` :data:`INDIRECT_SCALE` to keep it a small correction.  A flat
+    sample has ``V_sky = 1`` and no indirect light.
     """
     if not isinstance(view, SurfaceView):
         raise TypeError(f"view must be a SurfaceView, got {type(view).__name__}")

@@ -227,17 +227,18 @@ def dark_current_map(spec: SensorSpec, shape: tuple[int, int], rng: np.random.Ge
 def _readout(lam: np.ndarray, spec: SensorSpec, rng: np.random.Generator, out: np.ndarray) -> None:
     """Noisy DN of mean photo+dark electrons ``lam`` (1-D float64) into ``out`` (uint16)."""
     fw, sr = float(spec.full_well_e), float(spec.read_noise_e)
-    small = lam < GAUSSIAN_PHOTON_THRESHOLD_E
+    z = rng.standard_normal(lam.shape)
+    small = np.flatnonzero(lam < GAUSSIAN_PHOTON_THRESHOLD_E)
     e = np.sqrt(lam + sr * sr)
-    e *= rng.standard_normal(lam.shape)
+    e *= z
     e += lam                                            # eq. Gaussian photon + read noise (large lambda)
-    if small.any():
-        idx = np.flatnonzero(small)
-        es = np.minimum(rng.poisson(lam[idx]), fw).astype(np.float64)  # eq. Poisson, full-well clip
+    if small.size:
+        es = np.minimum(rng.poisson(lam[small]), fw).astype(np.float64)   # eq. Poisson, full-well clip
         if sr > 0:
-            es += sr * rng.standard_normal(idx.size)    # eq. read noise
-        e[idx] = es
-    np.minimum(e, fw, out=e)                            # eq. ADC range ends at the full well
+            es += sr * z[small]                         # eq. read noise
+        e[small] = es
+    # The ADC range ends at the full well: e >= e_fw gives e/g + b >= white, so the
+    # clip to the white level below is the readout clip (eq. min(e, e_fw)).
     e *= 1.0 / float(spec.gain_e_per_dn)
     e += float(spec.black_level)                        # eq. DN = e / g + b
     np.rint(e, out=e)
@@ -304,7 +305,10 @@ def expose(radiance_rgb: np.ndarray, exposure_time, spec: SensorSpec, dark_map: 
     if not np.all(np.isfinite(t)) or np.any(t <= 0):
         raise ValueError(f"exposure times must be finite and > 0, got {t}")
     shape = rad.shape[-3:-1]
-    rate = signal_rate(rad, spec, psf)                         # (..., rows, cols) e-/s
+    if psf and spec.psf_sigma_px > 0:
+        rad = apply_psf(rad, spec.psf_sigma_px)
+    rate = _mosaic_scaled(rad, spec.bayer_pattern, np.asarray(spec.sensitivity_rgb, dtype=np.float32),
+                          dtype=np.float32)                    # eq. k L, (..., rows, cols) e-/s
     dark = _dark_rate(spec, dark_map, shape)
     lead = np.broadcast_shapes(rate.shape[:-2], t.shape)
     rate_b = np.broadcast_to(rate, lead + shape)
@@ -396,10 +400,13 @@ class BracketReport(NamedTuple):
     ratio : (n,) ndarray of float64
         Step between consecutive exposure times.
     ratio_needed : (n,) ndarray of float64
-        Step that would bring the darkest masked pixel to ``lo`` of full scale.
+        Step that would bring the darkest masked pixel to ``lo`` of full scale
+        (``inf`` for a frame without signal).
     capped : (n,) ndarray of bool
         ``ratio_needed > max_ratio``: the scene's dynamic range is too wide
         for the bracket; its darkest pixels stay below ``lo``.
+    time_limited : (n,) ndarray of bool
+        The longest exposure was cut to ``max_time_s`` (a very dark frame).
     dynamic_range : (n,) ndarray of float64
         Brightest / darkest positive signal rate in the mask.
     underexposed_fraction : (n,) ndarray of float64
@@ -410,13 +417,14 @@ class BracketReport(NamedTuple):
     ratio: np.ndarray
     ratio_needed: np.ndarray
     capped: np.ndarray
+    time_limited: np.ndarray
     dynamic_range: np.ndarray
     underexposed_fraction: np.ndarray
 
 
 def choose_bracket(radiance_rgb: np.ndarray, spec: SensorSpec, mask: np.ndarray | None = None, *,
                    hi: float = 0.8, lo: float = 0.05, min_ratio: float = 2.0, max_ratio: float | None = None,
-                   dark_time_s: float = 10.0, psf: bool = True, return_report: bool = False):
+                   max_time_s: float = 10.0, psf: bool = True, return_report: bool = False):
     """Exposure bracket an operator would choose for a frame.
 
     Parameters
@@ -440,8 +448,9 @@ def choose_bracket(radiance_rgb: np.ndarray, spec: SensorSpec, mask: np.ndarray 
         Largest step; default ``WELL_EXPOSED[1] / WELL_EXPOSED[0]`` (90), the
         widest step that leaves no gap between consecutive frames' well-exposed
         ranges.
-    dark_time_s : float
-        Longest exposure of a frame whose mask receives no light at all.
+    max_time_s : float
+        Longest exposure the operator accepts (also the longest exposure of a
+        frame whose mask receives no light at all).
     psf : bool
         Judge the blurred image (as the sensor sees it).
     return_report : bool
@@ -458,8 +467,8 @@ def choose_bracket(radiance_rgb: np.ndarray, spec: SensorSpec, mask: np.ndarray 
     -----
     Let :math:`r_{max}, r_{min}` be the largest and the smallest positive
     photo-electron rate (e-/s, :func:`signal_rate`) of the masked raw pixels,
-    :math:`F = (W - b) g` the full scale in electrons and :math:`n` the bracket
-    length. Then
+    :math:`F = (W - b) g` the full scale in electrons, :math:`n` the bracket
+    length and :math:`T` = ``max_time_s``. Then
 
     .. math::
         t_1 = h F / r_{max}, \\qquad
@@ -473,12 +482,21 @@ def choose_bracket(radiance_rgb: np.ndarray, spec: SensorSpec, mask: np.ndarray 
     :data:`WELL_EXPOSED`, every masked pixel with signal lies within
     :math:`[v, u]` of full scale in at least one frame (noise-free).
 
-    When the dynamic range is too wide for the bracket (:math:`\\rho^* >
-    \\rho_{max}`), the step is capped at :math:`\\rho_{max}` and the shortest
-    exposure is kept, so highlights stay unclipped and the darkest pixels
-    are recorded below :math:`v` (noisier, never lost to saturation); the
-    report's ``capped`` and ``underexposed_fraction`` say so. Dark current is
-    not part of the rule (the operator judges the signal).
+    Limits, in this order:
+
+    * the dynamic range is too wide for the bracket (:math:`\\rho^* >
+      \\rho_{max}`): the step is capped at :math:`\\rho_{max}` and the shortest
+      exposure is kept, so highlights stay unclipped and the darkest pixels
+      are recorded below :math:`v` (noisier, never lost to saturation);
+      reported as ``capped``;
+    * the longest exposure would exceed :math:`T`: the step shrinks to
+      :math:`\\max(\\rho_{min}, (T/t_1)^{1/(n-1)})`, and if even that is too
+      long, :math:`t_n = T` and :math:`t_k = T \\rho_{min}^{k-n}` (a frame too
+      dark to fill the well); reported as ``time_limited``.
+
+    Both leave some masked pixels under-exposed; ``underexposed_fraction``
+    counts them. Dark current is not part of the rule (the operator judges
+    the signal).
     """
     rad = np.asarray(radiance_rgb)
     single = rad.ndim == 3
@@ -489,35 +507,51 @@ def choose_bracket(radiance_rgb: np.ndarray, spec: SensorSpec, mask: np.ndarray 
     n_exp = int(spec.n_exposures)
     v, u = WELL_EXPOSED
     max_ratio = u / v if max_ratio is None else float(max_ratio)
-    if not (0 < lo < hi <= 1) or min_ratio <= 1 or max_ratio < min_ratio:
-        raise ValueError(f"need 0 < lo < hi <= 1 and 1 < min_ratio <= max_ratio, got lo={lo}, hi={hi}, "
-                         f"min_ratio={min_ratio}, max_ratio={max_ratio}")
-    rate = signal_rate(rad, spec, psf)                                     # (n, rows, cols)
-    m = np.ones(rate.shape, dtype=bool) if mask is None else np.broadcast_to(np.asarray(mask, dtype=bool),
-                                                                            rate.shape)
-    full = (spec.white_level - spec.black_level) * spec.gain_e_per_dn      # eq. F = (W - b) g
-    r_max = np.where(m, rate, -np.inf).max(axis=(1, 2))
-    r_min = np.where(m & (rate > 0), rate, np.inf).min(axis=(1, 2))
-    lit = np.isfinite(r_min) & (r_max > 0)
-    r_max_s = np.where(lit, r_max, 1.0)
-    r_min_s = np.where(lit, r_min, 1.0)
-    dyn = r_max_s / r_min_s
-    t1 = hi * full / r_max_s                                               # eq. t_1 = h F / r_max
-    if n_exp > 1:
-        need = (lo / hi * dyn) ** (1.0 / (n_exp - 1))                      # eq. rho*
+    if not (0 < lo < hi <= 1) or min_ratio <= 1 or max_ratio < min_ratio or not max_time_s > 0:
+        raise ValueError(f"need 0 < lo < hi <= 1, 1 < min_ratio <= max_ratio and max_time_s > 0, got lo={lo}, "
+                         f"hi={hi}, min_ratio={min_ratio}, max_ratio={max_ratio}, max_time_s={max_time_s}")
+    n = rad.shape[0]
+    if psf and spec.psf_sigma_px > 0:
+        rad = apply_psf(rad, spec.psf_sigma_px)
+    rate = _mosaic_scaled(rad, spec.bayer_pattern, np.asarray(spec.sensitivity_rgb, dtype=np.float32),
+                          dtype=np.float32)                                # (n, rows, cols) e-/s
+    if mask is None:
+        vals = rate.reshape(n, -1)
     else:
-        need = np.ones_like(dyn)
+        m = np.asarray(mask, dtype=bool)
+        if m.ndim == 2:
+            vals = rate[:, m]                                              # (n, n_masked)
+        else:
+            m = np.broadcast_to(m, rate.shape)
+            vals = np.where(m, rate, np.nan).reshape(n, -1)
+    with np.errstate(invalid="ignore"):
+        r_max = np.nanmax(np.where(vals > 0, vals, 0), axis=1, initial=0.0).astype(np.float64) \
+            if vals.size else np.zeros(n)
+        r_min = np.nanmin(np.where(vals > 0, vals, np.inf), axis=1, initial=np.inf).astype(np.float64) \
+            if vals.size else np.full(n, np.inf)
+    lit = np.isfinite(r_min) & (r_max > 0)
+    full = (spec.white_level - spec.black_level) * spec.gain_e_per_dn      # eq. F = (W - b) g
+    dyn = np.where(lit, r_max / np.where(lit, r_min, 1.0), np.inf)
+    with np.errstate(divide="ignore"):
+        t1 = np.where(lit, hi * full / np.where(lit, r_max, 1.0), np.inf)  # eq. t_1 = h F / r_max
+    k = n_exp - 1
+    need = (lo / hi * dyn) ** (1.0 / k) if k else np.ones(n)               # eq. rho*
     ratio = np.clip(need, min_ratio, max_ratio)                            # eq. rho
-    dark_t1 = dark_time_s / min_ratio ** (n_exp - 1)
-    t1 = np.where(lit, t1, dark_t1)
-    ratio = np.where(lit, ratio, min_ratio)
+    if k:
+        with np.errstate(divide="ignore", over="ignore"):
+            too_long = t1 * ratio**k > max_time_s * (1 + 1e-12)
+            ratio = np.where(too_long, np.maximum(min_ratio, (max_time_s / t1) ** (1.0 / k)), ratio)
+    else:
+        too_long = t1 > max_time_s
+    t1 = np.minimum(t1, max_time_s / ratio**k)                             # eq. t_n <= T
     times = t1[:, None] * ratio[:, None] ** np.arange(n_exp)               # eq. t_k = t_1 rho^(k-1)
     if not return_report:
         return times[0] if single else times
-    level_best = rate * times[:, -1, None, None] / full                    # brightest frame for dark pixels
-    under = (m & (level_best < v)).sum(axis=(1, 2)) / np.maximum(m.sum(axis=(1, 2)), 1)
-    report = BracketReport(ratio=ratio, ratio_needed=np.where(lit, need, np.inf), capped=need > max_ratio,
-                           dynamic_range=np.where(lit, dyn, np.inf), underexposed_fraction=under)
+    n_mask = np.maximum(np.sum(np.isfinite(vals), axis=1), 1)
+    with np.errstate(invalid="ignore"):
+        under = np.sum(vals * (times[:, -1:] / full) < v, axis=1) / n_mask  # brightest frame of each pixel
+    report = BracketReport(ratio=ratio, ratio_needed=need, capped=need > max_ratio, time_limited=too_long,
+                           dynamic_range=dyn, underexposed_fraction=under.astype(np.float64))
     if single:
         report = BracketReport(*(np.asarray(a)[0] for a in report))
     return (times[0] if single else times), report

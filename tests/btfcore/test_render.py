@@ -162,12 +162,36 @@ def test_horizon_map_of_a_wall(wall):
     # azimuth pi looks toward -x: the wall's right face, distance to column C1 - 1
     for j in range(C1 + 2, C1 + 20):
         assert hz[16, row, j] == pytest.approx(math.atan(HW / (j - (C1 - 1))), abs=1e-6)
-    # looking away from the wall across flat ground: horizon 0 (mirror boundary, no wall there)
-    assert np.all(hz[16, :, 4 : C0 - 10] == 0.0) or np.all(hz[16, :, 4:10] < 0.05)
+    # looking toward -x from the left of the wall: the mirror image of the
+    # wall's first column (col C0 -> col -1 - C0) within the search radius N
+    for j in range(2, 20):
+        assert hz[16, row, j] == pytest.approx(math.atan(HW / (j + 1 + C0)), abs=1e-6)
+    assert np.all(hz[16, :, C0 - 8 : C0] == 0.0)  # the image is beyond the search radius N
     # a flat map has no horizon; a larger search radius only raises horizons
     assert np.all(horizon_map(np.zeros((8, 8))) == 0)
     hz_short = horizon_map(maps.height, max_distance=10)
     assert np.all(hz_short <= hz + 1e-7)
+
+
+def test_horizon_and_parallax_on_a_non_square_grid():
+    """Rows of a (32, 64) map are 2 column pitches apart (heights in column pitches)."""
+    h = np.zeros((32, 64), np.float32)
+    h[8:12, :] = 6.0  # a wall along x; row 11 is its -y face
+    hz = horizon_map(h, n_azimuth=32)
+    for i in range(13, 24):
+        dist = 2.0 * (i - 11)  # looking +y (azimuth 90 deg, slice 8) toward decreasing rows
+        assert hz[8, i, 5] == pytest.approx(math.atan(6.0 / dist), abs=1e-6)
+    maps = _maps(h)
+    z_ref = float(h.mean())
+    e = math.radians(45.0)
+    view = prepare_view(maps, [0.0, -math.cos(e), math.sin(e)], hz)  # camera toward -y
+    # ground texels far from the wall see ground shifted toward +y (lower row)
+    # by z_ref / tan(e) pitches = z_ref / 2 rows
+    i = 28
+    assert view.hit_row[i, 7] == pytest.approx(i - z_ref / 2.0, abs=1e-3)
+    assert view.hit_col[i, 7] == pytest.approx(7.0, abs=1e-9)
+    flat = render_view(flat_material((6, 10), albedo=(0.3, 0.3, 0.3)), [0.3, 0.1, 0.9], _dome(5))
+    np.testing.assert_allclose(flat, 0.3 / np.pi * _dome(5)[:, 2, None, None, None] * np.ones_like(flat), rtol=1e-5)
 
 
 @pytest.mark.parametrize("elev_deg", [25.0, 40.0])
@@ -195,7 +219,6 @@ def test_cast_shadow_length_of_a_wall(wall, elev_deg, az_deg):
         elif d > length + spread:
             assert lum[j] >= direct * (1 - 1e-5), (j, d, length)  # fully lit (plus indirect)
             assert lum[j] <= direct * 1.25
-            n_dark += 0
             n_lit += 1
     assert n_dark >= 3 and n_lit >= 3
 
@@ -210,7 +233,7 @@ def test_shadow_edge_is_soft_and_monotonic(wall):
     view = prepare_view(maps, [0, 0, 1], hz)
     lum = _luminance(shade(view, lights))[:, row, j] / (0.5 / np.pi * lights[:, 2])
     assert lum[0] < 0.2 and lum[-1] >= 1.0 - 1e-5
-    assert np.all(np.diff(lum) >= -1e-6)  # monotonic
+    assert np.all(np.diff(lum) >= -1e-4)  # monotonic
     mid = lum[20]  # light centre exactly on the horizon: half the disc is visible
     assert mid == pytest.approx(0.5 * (lum[0] + lum[-1]), abs=0.1)
     assert np.count_nonzero((lum > lum[0] + 0.05) & (lum < lum[-1] - 0.05)) >= 5  # not a hard step
@@ -220,13 +243,22 @@ def test_indirect_term_is_small_and_positive(wall):
     maps, hz = wall
     view = prepare_view(maps, [0, 0, 1], hz)
     occ = view.occlusion[N // 2]
-    assert occ[2] < 1e-3  # far from the wall: open sky
-    # ground at distance d from an infinite wall of height HW: blocked
-    # cosine-weighted fraction (1 - cos(atan(HW / d))) / 2
-    for d in (3, 6, 12):
-        want = 0.5 * (1 - math.cos(math.atan(HW / d)))
-        assert occ[C0 - d] == pytest.approx(want, abs=0.03)
+
+    def blocked(d):  # cosine-weighted fraction hidden by an infinite wall at distance d
+        return 0.5 * (1 - math.cos(math.atan(HW / d))) if d <= N else 0.0
+
+    # ground left of the wall sees the wall and (mirror boundary) its image
+    for j in (2, 12, 24, 30, 33):
+        want = blocked(C0 - j) + blocked(j + 1 + C0)
+        assert occ[j] == pytest.approx(want, rel=0.15, abs=0.005), j
+    assert occ[C0 - 3] > 5 * occ[2]
     assert view.occlusion.max() <= 0.6
+    # the indirect light in a shadow is a small fraction of the direct light
+    light = _dir(20.0, 0.0)
+    lum = _luminance(shade(view, light[None]))[0, N // 2]
+    direct = 0.5 / np.pi * light[2]
+    shadowed = lum[C0 - 15 : C0 - 2]  # within the shadow length 8 / tan(20 deg) = 22
+    assert np.all(shadowed > 0.0) and np.all(shadowed < 0.1 * direct)
 
 
 # ---------------------------------------------------------------------------
@@ -325,8 +357,8 @@ def _dynamic_range(maps: MaterialMaps) -> tuple[float, float]:
 
 @pytest.mark.parametrize("class_name", ["metal", "stone"])
 def test_dynamic_range_over_dome(class_name, sources):
-    for seed in (0, 1):
-        lo, hi = _dynamic_range(make_material(class_name, seed, (40, 40), sources))
+    for seed in (0, 1, 2):
+        lo, hi = _dynamic_range(make_material(class_name, seed, (48, 48), sources))
         assert lo > 0.0  # shadows are not black: the indirect term
         assert hi / lo >= 1e3, (class_name, seed, hi / lo)
 
