@@ -33,7 +33,7 @@ def test_flow_writes_valid_stores_and_reports(tiny_database):
         assert material["well_exposed_fraction_min"] > 0.99, material
     html = (out / "report.html").read_text()
     images = re.findall(r"src='([^']+)'", html)
-    assert len(images) >= 2 + 3 + 2 * 4 + 2  # dome, raw strips, textures, ABRDFs
+    assert len(images) == 1 + 3 + 2 * 4 + 2  # dome, raw strips, textures, ABRDFs
     for name in images:
         assert (out / name).stat().st_size > 500, name
     assert (out / "database.json").is_file()
