@@ -50,6 +50,8 @@ def _add_simulation_options(p: argparse.ArgumentParser) -> None:
                    help="override the rectified texture side (ground truth is also written at 2x)")
     p.add_argument("--turntable", type=int, default=None, metavar="N",
                    help="simulate only the first N turntable positions (a pruned run)")
+    p.add_argument("--psf-sigma", type=float, default=0.0, metavar="PX",
+                   help="Gaussian point spread function of the cameras, sigma in raw pixels [default: 0, off]")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -92,7 +94,7 @@ def _simulation_config(args: argparse.Namespace):
 
     kwargs = dict(device=args.device, n_materials=args.materials, seed=args.seed,
                   illumination=args.illumination, bayer_pattern=args.bayer,
-                  texture_size=args.texture_size, n_turntable=args.turntable)
+                  texture_size=args.texture_size, n_turntable=args.turntable, psf_sigma_px=args.psf_sigma)
     if args.classes:
         kwargs["classes"] = tuple(c.strip() for c in args.classes.split(",") if c.strip())
     return SimulationConfig(**kwargs)

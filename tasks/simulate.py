@@ -66,6 +66,9 @@ class SimulationConfig:
         Override the device's texture side (the ground truth is also at 2x).
     n_turntable : int, optional
         Keep only the first positions of the turntable (a pruned run).
+    psf_sigma_px : float
+        Standard deviation of the cameras' Gaussian point spread function in raw
+        pixels; 0 turns the blur off.
     """
 
     device: str = "tiny"
@@ -76,6 +79,7 @@ class SimulationConfig:
     bayer_pattern: str | None = None
     texture_size: int | None = None
     n_turntable: int | None = None
+    psf_sigma_px: float = 0.0
 
     def __post_init__(self) -> None:
         problems = []
@@ -90,6 +94,10 @@ class SimulationConfig:
             problems.append(f"material classes {bad or '[]'} are unknown; choose from {', '.join(MATERIAL_CLASSES)}")
         if self.texture_size is not None and self.texture_size < 4:
             problems.append(f"texture_size must be >= 4, got {self.texture_size}")
+        if not 0.0 <= self.psf_sigma_px <= 10.0:
+            problems.append(f"psf_sigma_px must lie in [0, 10] raw pixels, got {self.psf_sigma_px}")
+        if self.n_turntable is not None and self.n_turntable < 1:
+            problems.append(f"n_turntable must be >= 1, got {self.n_turntable}")
         if problems:
             raise ValueError("invalid simulation config: " + "; ".join(problems))
 
@@ -98,6 +106,8 @@ class SimulationConfig:
         overrides: dict[str, Any] = {}
         if self.texture_size is not None:
             overrides["texture_shape"] = (self.texture_size, self.texture_size)
+        if self.psf_sigma_px:
+            overrides["sensor"] = {"psf_sigma_px": float(self.psf_sigma_px)}
         device = get_device(self.device, bayer_pattern=self.bayer_pattern, **overrides)
         if self.n_turntable is not None:
             device = device.with_overrides(turntable_angle_deg=device.turntable_angle_deg[: self.n_turntable])
