@@ -43,9 +43,11 @@ def write_json(path: str | Path, data: dict[str, Any]) -> Path:
     return path
 
 
-def _save_png(path: Path, rgb: np.ndarray, scale: int = 1) -> str:
-    if scale > 1:
-        rgb = cv2.resize(rgb, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
+def _save_png(path: Path, rgb: np.ndarray, scale: int | tuple[int, int] = 1) -> str:
+    """Write an 8-bit image, enlarged by whole pixels (``scale`` or ``(sy, sx)``)."""
+    sy, sx = (scale, scale) if isinstance(scale, int) else scale
+    if sy > 1 or sx > 1:
+        rgb = np.repeat(np.repeat(rgb, sy, axis=0), sx, axis=1)
     image = rgb[..., ::-1] if rgb.ndim == 3 else rgb
     if not cv2.imwrite(str(path), np.ascontiguousarray(image)):
         raise OSError(f"could not write {path}")
@@ -201,7 +203,8 @@ def abrdf_image(store: CaptureStore, out: Path, prefix: str) -> dict:
     column = np.asarray(truth[:, h // 2, w // 2, :])                 # (n_lv, 3)
     n_views = store.n_turn * store.n_cam
     image = column.reshape(n_views, store.n_leds, 3)                  # rows: views, cols: lights
-    scale = max(1, int(math.ceil(384 / max(image.shape[:2]))))
+    # whole-pixel enlargement to at least ~192 px per axis, as in Fig. 1.3
+    scale = tuple(max(1, int(math.ceil(192 / n))) for n in image.shape[:2])
     name = _save_png(out / f"{prefix}_abrdf.png", tonemap(image), scale=scale)
     return {"file": name, "texel": [h // 2, w // 2], "shape": [n_views, store.n_leds]}
 

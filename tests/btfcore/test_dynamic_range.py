@@ -13,18 +13,18 @@ LUMA = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
 
 
 @pytest.fixture(scope="module")
-def sources():
+def photos():
     from tasks.textures import load_texture_sources
 
     return load_texture_sources()
 
 
 @pytest.mark.parametrize("class_name", MATERIAL_CLASSES)
-def test_every_class_is_high_dynamic_range_on_tiny(class_name, sources):
+def test_every_class_is_high_dynamic_range_on_tiny(class_name, photos):
     device = get_device("tiny")
     h, w = device.texture_shape
     for seed in range(3):
-        maps = make_material(class_name, seed, (2 * h, 2 * w), sources)
+        maps = make_material(class_name, seed, (2 * h, 2 * w), photos)
         horizon = horizon_map(maps.height)
         lum = np.concatenate([
             (downsample2(render_view(maps, device.view_dir(t, c), device.light_dirs(t), horizon)) @ LUMA).ravel()

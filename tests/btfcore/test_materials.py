@@ -6,7 +6,6 @@ import json
 
 import numpy as np
 import pytest
-from scipy import ndimage
 
 from btfcore.simulate.materials import (
     MATERIAL_CLASSES,
@@ -21,20 +20,6 @@ SHAPE = (64, 64)
 SEEDS = (0, 1, 2)
 
 
-def _grey(rng: np.random.Generator, sigma: float, n: int = 256) -> np.ndarray:
-    x = ndimage.gaussian_filter(rng.standard_normal((n, n)), sigma, mode="wrap")
-    x = (x - x.min()) / (x.max() - x.min())
-    return np.round(x * 255).astype(np.uint8)
-
-
-@pytest.fixture(scope="module")
-def sources() -> dict[str, np.ndarray]:
-    """Seeded synthetic stand-ins for the texture photographs."""
-    rng = np.random.default_rng(1234)
-    out = {"brick": _grey(rng, 4.0), "grass": _grey(rng, 1.2), "gravel": _grey(rng, 2.5)}
-    out["bricks_rgb"] = np.stack([_grey(rng, 3.0) for _ in range(3)], axis=-1)
-    out["wood_rgb"] = np.stack([_grey(rng, 2.0) for _ in range(3)], axis=-1)
-    return out
 
 
 @pytest.fixture(scope="module")

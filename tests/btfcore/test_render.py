@@ -6,7 +6,6 @@ import math
 
 import numpy as np
 import pytest
-from scipy import ndimage
 
 from btfcore.simulate.materials import MaterialMaps, flat_material, make_material, white_standard
 from btfcore.simulate.render import (
@@ -57,19 +56,6 @@ def _luminance(btf: np.ndarray) -> np.ndarray:
     return btf @ np.array([0.2126, 0.7152, 0.0722], np.float32)
 
 
-def _grey(rng: np.random.Generator, sigma: float, n: int = 256) -> np.ndarray:
-    x = ndimage.gaussian_filter(rng.standard_normal((n, n)), sigma, mode="wrap")
-    x = (x - x.min()) / (x.max() - x.min())
-    return np.round(x * 255).astype(np.uint8)
-
-
-@pytest.fixture(scope="module")
-def sources() -> dict[str, np.ndarray]:
-    rng = np.random.default_rng(99)
-    out = {"brick": _grey(rng, 4.0), "grass": _grey(rng, 1.2), "gravel": _grey(rng, 2.5)}
-    out["bricks_rgb"] = np.stack([_grey(rng, 3.0) for _ in range(3)], axis=-1)
-    out["wood_rgb"] = np.stack([_grey(rng, 2.0) for _ in range(3)], axis=-1)
-    return out
 
 
 # wall: flat ground with a wall of height HW over columns [C0, C1) spanning all rows
