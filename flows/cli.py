@@ -30,6 +30,13 @@ with a temporary Prefect server).
 """
 
 
+EPILOG = """\
+exit codes: 0 success; 1 bad input (the message names the file, array and
+index and what to do); 2 usage error; 3 Prefect or the Dask cluster could not
+start. Docs: docs/capture-store.md, docs/devices.md, docs/decisions.md.
+"""
+
+
 def _add_simulation_options(p: argparse.ArgumentParser) -> None:
     from btfcore.simulate.devices import DEVICE_NAMES
     from btfcore.simulate.materials import MATERIAL_CLASSES
@@ -55,7 +62,7 @@ def _add_simulation_options(p: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="btf", description=DESCRIPTION,
+    parser = argparse.ArgumentParser(prog="btf", description=DESCRIPTION, epilog=EPILOG,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--cluster", default=None, metavar="PROFILE",
                         help="execution profile YAML (cluster kind, workers, memory, Prefect API) "

@@ -162,7 +162,8 @@ def dask_client(profile: Profile, prefect_url: str | None = None) -> Iterator[An
                 threads_per_worker=int(spec.pop("threads_per_worker", 1)),
                 memory_limit=spec.pop("memory_limit", "4GiB"),
                 processes=bool(spec.pop("processes", True)),
-                dashboard_address=":8787" if dashboard else None,
+                # the scheduler always serves HTTP (metrics); a random port avoids clashes
+                dashboard_address=":8787" if dashboard else ":0",
                 scheduler_kwargs={"dashboard": dashboard},
                 silence_logs=logging.WARNING,
                 **spec,

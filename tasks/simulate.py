@@ -290,6 +290,34 @@ class SimulationResult:
     extra: dict[str, Any] = field(default_factory=dict)
 
 
+def estimated_bytes(config: SimulationConfig) -> int:
+    """Bytes the database of ``config`` takes on disk (uncompressed arrays)."""
+    device = config.build_device()
+    h, w = device.texture_shape
+    rows, cols = device.roi_shape
+    n_illum = illumination_patterns(device.n_leds, config.illumination).shape[0]
+    raw = device.n_turn * device.n_cam * n_illum * device.sensor.n_exposures * rows * cols * 2
+    truth = device.n_lv * h * w * 3 * 4 * (1 + 4)          # btf and btf_2x, float32
+    return config.n_materials * (raw + truth)
+
+
+def check_disk_space(config: SimulationConfig, out_dir: Path) -> None:
+    """Refuse to start a simulation that cannot fit on the output's filesystem."""
+    import shutil
+
+    need = estimated_bytes(config)
+    probe = out_dir
+    while not probe.exists():
+        probe = probe.parent
+    free = shutil.disk_usage(probe).free
+    if need > free:
+        raise ValueError(
+            f"{out_dir}: the {config.device} database of {config.n_materials} material(s) needs about "
+            f"{need / 1e9:.1f} GB but only {free / 1e9:.1f} GB are free there; choose another --out, fewer "
+            "--materials, a pruned --turntable N or a smaller --texture-size"
+        )
+
+
 def open_or_create(out_dir: Path, config: SimulationConfig, spec: MaterialSpec, device: Device,
                    overwrite: bool) -> CaptureStore:
     """Create a material's store, or reopen an unfinished one of the same config to resume."""
@@ -316,6 +344,8 @@ def simulate_database(config: SimulationConfig, out_dir: str | Path, client: Any
 
     start = time.perf_counter()
     out_dir = Path(out_dir)
+    if not (out_dir / "database.json").exists():
+        check_disk_space(config, out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     device = config.build_device()
     futures, stores, skipped, records = [], [], 0, []

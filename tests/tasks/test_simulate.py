@@ -94,3 +94,11 @@ def test_multiplexed_frame_is_the_sum_of_singles(tmp_path, dask_client):
         rel = np.abs(multiplexed[valid] - summed[valid]) / summed[valid]
         # photon + read noise of a few hundred electrons per pixel: a few per cent
         assert np.median(rel) < 0.05, (i, np.median(rel))
+
+
+def test_a_database_that_cannot_fit_is_refused_before_any_work(tmp_path, dask_client):
+    # ~425 TB: more than any test machine's disk
+    config = SimulationConfig(device="bonn-dome2", n_materials=10_000)
+    with pytest.raises(ValueError, match=r"needs about .* GB but only .* GB are free"):
+        simulate_database(config, tmp_path / "huge", dask_client)
+    assert not (tmp_path / "huge").exists()
