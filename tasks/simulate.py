@@ -15,9 +15,9 @@ from __future__ import annotations
 import hashlib
 import json
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable
 
 import numpy as np
 
@@ -287,7 +287,6 @@ class SimulationResult:
     views_done: int
     views_skipped: int
     seconds: float
-    extra: dict[str, Any] = field(default_factory=dict)
 
 
 def estimated_bytes(config: SimulationConfig) -> int:
@@ -318,13 +317,6 @@ def check_disk_space(config: SimulationConfig, out_dir: Path) -> None:
         )
 
 
-def open_or_create(out_dir: Path, config: SimulationConfig, spec: MaterialSpec, device: Device,
-                   overwrite: bool) -> CaptureStore:
-    """Create a material's store, or reopen an unfinished one of the same config to resume."""
-    return create_capture_store(out_dir / f"{spec.material_id}.zarr", capture_metadata(config, spec, device),
-                                with_truth=True, overwrite=overwrite)
-
-
 def simulate_database(config: SimulationConfig, out_dir: str | Path, client: Any, *,
                       overwrite: bool = False,
                       progress: Callable[[int, int], None] | None = None) -> SimulationResult:
@@ -353,7 +345,8 @@ def simulate_database(config: SimulationConfig, out_dir: str | Path, client: Any
         path = out_dir / f"{spec.material_id}.zarr"
         store = None if overwrite else _finished_store(path, config, spec)
         if store is None:
-            store = open_or_create(out_dir, config, spec, device, overwrite)
+            store = create_capture_store(path, capture_metadata(config, spec, device), with_truth=True,
+                                         overwrite=overwrite)
             pending = store.pending_views()
             prepared = client.submit(prepare_material, str(path), config, spec, pure=False,
                                      key=f"prepare-{spec.material_id}-{time.time_ns()}")
@@ -393,7 +386,3 @@ def _finished_store(path: Path, config: SimulationConfig, spec: MaterialSpec) ->
         return None
     return store
 
-
-def read_truth(store: CaptureStore, lv: Sequence[int] | slice = slice(None)) -> np.ndarray:
-    """Ground-truth BTF rows ``(n, h, w, 3)`` of a simulated store."""
-    return np.asarray(store.truth["btf"][lv])
