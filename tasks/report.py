@@ -15,7 +15,9 @@ from typing import Any, Sequence
 import cv2
 import numpy as np
 
+from btfcore.simulate.camera import homography_sample_mask
 from btfcore.simulate.devices import Device
+from btfcore.simulate.sensor import WELL_EXPOSED
 from btfcore.tonemap import srgb_encode, tonemap
 from tasks.store import CaptureStore, open_capture_store
 
@@ -69,20 +71,17 @@ def material_statistics(store: CaptureStore) -> dict[str, Any]:
     times = np.asarray(store.group["exposure_time"][...])
     meta = store.meta
     # Exposure quality of the real (noisy) frames of a few views: a sample pixel is
-    # well exposed when one frame has it between 1% and 90% of the sensor's range.
+    # well exposed when one frame has it inside the sensor's WELL_EXPOSED range.
     span = float(meta.white_level - meta.black_level)
-    well, saturated, views = [], [], 0
-    for t in range(store.n_turn):
-        for c in range(store.n_cam):
-            views += 1
-            if views > 8:
-                break
-            frames, _ = store.read_bracket(t, c, 0)
-            level = (frames.astype(np.float64) - meta.black_level) / span
-            mask = _sample_mask_from_homography(store, t, c)
-            good = ((level > 0.01) & (level < 0.9)).any(axis=0)
-            well.append(float(good[mask].mean()))
-            saturated.append(float((frames[0] >= meta.white_level)[mask].mean()))
+    well, saturated = [], []
+    views = [(t, c) for t in range(store.n_turn) for c in range(store.n_cam)]
+    for t, c in views[:: max(1, len(views) // 8)]:  # up to ~8 views spread over the capture
+        frames, _ = store.read_bracket(t, c, 0)
+        level = (frames.astype(np.float64) - meta.black_level) / span
+        mask = homography_sample_mask(store.homography[t, c], store.roi_shape, meta.sample_size_m)
+        good = ((level > WELL_EXPOSED[0]) & (level < WELL_EXPOSED[1])).any(axis=0)
+        well.append(float(good[mask].mean()))
+        saturated.append(float((frames[0] >= meta.white_level)[mask].mean()))
     return {
         "n_lv": int(n_lv),
         # brightest over darkest non-zero luminance of the (noise-free) truth
@@ -94,17 +93,6 @@ def material_statistics(store: CaptureStore) -> dict[str, Any]:
         "well_exposed_fraction_min": float(min(well)),
         "saturated_in_shortest_fraction_max": float(max(saturated)),
     }
-
-
-def _sample_mask_from_homography(store: CaptureStore, t: int, c: int) -> np.ndarray:
-    """ROI pixels whose centre maps inside the sample square (from the stored homography)."""
-    rows, cols = store.roi_shape
-    H_inv = np.linalg.inv(np.asarray(store.group["homography"][t, c], dtype=np.float64))
-    r, q = np.mgrid[0:rows, 0:cols]
-    pts = H_inv @ np.stack([q.ravel(), r.ravel(), np.ones(q.size)])
-    x, y = pts[0] / pts[2], pts[1] / pts[2]
-    half = store.meta.sample_size_m / 2
-    return ((np.abs(x) < half) & (np.abs(y) < half)).reshape(rows, cols)
 
 
 def plot_dome(device: Device, path: Path) -> str:

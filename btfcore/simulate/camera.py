@@ -49,7 +49,23 @@ def sample_corners_px(H: np.ndarray, sample_size_m: float) -> np.ndarray:
     return np.stack([col, row], axis=1)
 
 
-def _inside_mask_from_h(H: np.ndarray, roi_shape: tuple[int, int], sample_size_m: float) -> np.ndarray:
+def homography_sample_mask(H: np.ndarray, roi_shape: tuple[int, int], sample_size_m: float) -> np.ndarray:
+    """Frame pixels whose centre maps inside the sample square.
+
+    Parameters
+    ----------
+    H : (3, 3) ndarray
+        Homography sample plane (metres) -> frame pixel ``(col, row, 1)``.
+    roi_shape : (int, int)
+        Frame ``(rows, cols)``.
+    sample_size_m : float
+        Side ``s`` of the square sample.
+
+    Returns
+    -------
+    mask : (rows, cols) ndarray of bool
+        True where ``H^-1 (col, row, 1)`` lies strictly inside ``|x|, |y| < s/2``.
+    """
     rows, cols = roi_shape
     Hinv = np.linalg.inv(np.asarray(H, dtype=np.float64))
     r, q = np.mgrid[0:rows, 0:cols].astype(np.float64)
@@ -74,7 +90,7 @@ def sample_mask(device: Device, t: int, c: int) -> np.ndarray:
         True where ``H^-1 (col, row, 1)`` lies strictly inside the sample
         square ``|x|, |y| < s/2``.
     """
-    return _inside_mask_from_h(device.homography(t, c), device.roi_shape, device.sample_size_m)
+    return homography_sample_mask(device.homography(t, c), device.roi_shape, device.sample_size_m)
 
 
 def holder_radiance(light_dirs: np.ndarray, albedo: float = 0.1) -> np.ndarray:
