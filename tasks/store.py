@@ -667,7 +667,11 @@ def _check_content(
 ) -> dict[str, np.ndarray]:
     """Value checks on the small arrays. Returns the loaded arrays."""
     data: dict[str, np.ndarray] = {}
-    for name, info in infos.items():
+    # Resume markers first: writers put a view's data on disk before its marker,
+    # so a store that other workers are still writing validates consistently.
+    markers = [n for n in infos if n.endswith("written")]
+    for name in markers + [n for n in infos if n not in markers]:
+        info = infos[name]
         if usable.get(name) and info.load is not None:
             data[name] = np.asarray(info.load())
     P = problems.append
