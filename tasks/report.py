@@ -288,6 +288,12 @@ def simulation_report(out_dir: str | Path, device: Device, store_paths: Sequence
         "n_lv": device.n_lv, "texture_shape": list(device.texture_shape), "roi_shape": list(device.roi_shape)},
         "materials": materials}
     write_json(out / "report.json", report)
-    summary = {k: v for k, v in run.items() if not isinstance(v, (dict, list))}
+    stages = run.get("stages", {})
+    summary = {
+        **{k: v for k, v in run.items() if not isinstance(v, (dict, list))},
+        "device": f"{device.name}: {device.n_lv} light/view pairs, texture {device.texture_shape[0]}x{device.texture_shape[1]}",
+        "materials": ", ".join(m["material_id"] for m in materials),
+        **{f"{name} stage": ", ".join(f"{k} {v}" for k, v in figures.items()) for name, figures in stages.items()},
+    }
     write_html(out / "report.html", f"btf-pipeline report: {run.get('command', 'simulate')}", summary, sections)
     return report
