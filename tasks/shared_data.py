@@ -15,13 +15,14 @@ _REPO_ROOT = Path(__file__).resolve().parents[1]
 def shared_data_dir() -> Path | None:
     """The shared data folder, or ``None`` when this checkout has none.
 
-    Looks at ``$BTF_SHARED_DATA`` first, then ``../shared/data`` beside the
-    repository root and beside the current directory.
+    ``$BTF_SHARED_DATA`` when set (and nothing else), otherwise
+    ``../shared/data`` beside the repository root or the current directory.
+    A folder counts only when it holds ``MANIFEST.md``.
     """
-    candidates = []
-    if os.environ.get("BTF_SHARED_DATA"):
-        candidates.append(Path(os.environ["BTF_SHARED_DATA"]))
-    candidates += [_REPO_ROOT.parent / "shared" / "data", Path.cwd().parent / "shared" / "data"]
+    if os.environ.get("BTF_SHARED_DATA"):  # an explicit choice is never second-guessed
+        candidates = [Path(os.environ["BTF_SHARED_DATA"])]
+    else:
+        candidates = [_REPO_ROOT.parent / "shared" / "data", Path.cwd().parent / "shared" / "data"]
     for path in candidates:
         if (path / "MANIFEST.md").is_file():
             return path.resolve()
