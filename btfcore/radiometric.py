@@ -1,0 +1,286 @@
+"""Radiometric correction: per-LED intensity/colour and the camera colour matrix.
+
+The LEDs of a dome differ in intensity and colour, and the camera's colour
+filters are not the target colour space. Before rectified radiance maps are
+stacked into a BTF they are "corrected radiometrically using the calibration
+data obtained beforehand" (thesis §1.1.3, line 174; VMV paper 4.1, line 856:
+"We use LED calibration data in order to account for variations in the LEDs'
+spectra").
+
+* **LED calibration.** A flat Lambertian white standard of albedo ``a`` lit
+  by LED ``l`` from polar angle :math:`\\theta_l` reflects
+  :math:`a/\\pi \\cos\\theta_l` per unit irradiance (the simulator's BTF
+  convention, docs/decisions.md "What a BTF value is"). The measured value is
+  that times the LED's RGB gain :math:`g_{l,c}`; :func:`led_calibration`
+  estimates the gain as a median over texels and views and
+  :func:`apply_led_calibration` divides it out.
+* **Colour matrix.** A 3x3 (or 3x4 affine) matrix maps camera RGB to the
+  target space (:func:`apply_colour_matrix`); :func:`fit_colour_matrix`
+  fits one to colour-checker patches by least squares.
+
+On a multiplexed capture the LED gains act on the single-LED images, so the
+calibration is applied *after* demultiplexing (and the white standard's own
+multiplexed capture is demultiplexed first).
+
+References
+----------
+.. [1] The thesis (``reference/000_07a399c75a6bdea8.txt``), §1.1.3 (line 174)
+   and App. "Multiplexed acquisition" 4.1 (line 856).
+.. [2] C. Schwartz, R. Sarlette, M. Weinmann, M. Rump and R. Klein, "Design
+   and implementation of practical bidirectional texture function
+   measurement devices focusing on the developments at the University of
+   Bonn", Sensors 14(5), 2014 (dome calibration).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = [
+    "MIN_COS_THETA",
+    "apply_colour_matrix",
+    "apply_led_calibration",
+    "fit_colour_matrix",
+    "led_calibration",
+]
+
+#: LEDs closer to the horizon than this cosine (about 89.4 deg) cannot be calibrated on a flat standard.
+MIN_COS_THETA = 0.01
+
+
+def _check_finite(x: np.ndarray, name: str) -> None:
+    finite = np.isfinite(x)
+    if not finite.all():
+        idx = tuple(int(v) for v in np.unravel_index(int(np.argmin(finite)), x.shape))
+        raise ValueError(
+            f"{name} contains NaN or Inf: {name}{list(idx)} = {float(x[idx])!r} "
+            f"({int(x.size - finite.sum())} non-finite values in all)"
+        )
+
+
+def _float_dtype(x: np.ndarray) -> type:
+    return np.float32 if x.dtype == np.float32 else np.float64
+
+
+def led_calibration(
+    white: np.ndarray,
+    light_dirs: np.ndarray,
+    albedo: float = 0.99,
+    *,
+    mask: np.ndarray | None = None,
+) -> np.ndarray:
+    """Per-LED RGB gain from a capture of a flat Lambertian white standard.
+
+    Parameters
+    ----------
+    white : (n_leds, ..., C) array_like
+        Linear, demosaicked, rectified radiance of the white standard, one
+        image per LED (demultiplexed if captured multiplexed); the middle
+        axes are anything (texel rows and columns, views). ``C`` is
+        usually 3 (RGB).
+    light_dirs : (n_leds, 3) array_like
+        Direction from the sample to each LED in the sample frame (only the
+        polar angle matters, so any turntable position will do).
+    albedo : float
+        Albedo of the standard in (0, 1] (the simulator's standard: 0.99).
+    mask : (...) array_like of bool, optional
+        Texels (and views) to use, shaped like ``white.shape[1:-1]``: leave
+        out the sample holder, dust, specks.
+
+    Returns
+    -------
+    gain : (n_leds, C) ndarray of float64
+        Radiance of each LED and channel relative to a unit-irradiance
+        white light.
+
+    Raises
+    ------
+    ValueError
+        On NaN/Inf in ``white`` or ``light_dirs`` (names the index), an LED
+        at or below the horizon (names the LED), a non-positive gain (a
+        dead LED or a missing frame; names the LED and channel), or shapes
+        that do not fit.
+
+    Notes
+    -----
+    A white standard of albedo :math:`a` lit by LED :math:`l` reflects
+
+    .. math:: W_{l,x,c} = \\frac{a}{\\pi} \\cos\\theta_l \\; g_{l,c}
+
+    at every texel :math:`x` and every view (Lambertian: independent of the
+    view). The estimate is the median over texels and views,
+
+    .. math:: \\hat g_{l,c} = \\operatorname{median}_x
+              \\frac{W_{l,x,c}}{(a/\\pi) \\cos\\theta_l},
+
+    which ignores specks, hot pixels and a few mis-registered border texels
+    (up to half of the samples). Noise-free data of the simulator is
+    recovered to float32 rounding.
+    """
+    w = np.asarray(white)
+    if not (np.issubdtype(w.dtype, np.floating) or np.issubdtype(w.dtype, np.integer)):
+        raise ValueError(f"white must be real numbers, got dtype {w.dtype}")
+    if w.ndim < 2:
+        raise ValueError(f"white must be (n_leds, ..., C), got shape {w.shape}")
+    n_leds, n_ch = w.shape[0], w.shape[-1]
+    d = np.asarray(light_dirs, dtype=np.float64)
+    if d.shape != (n_leds, 3):
+        raise ValueError(f"light_dirs must be ({n_leds}, 3) for {n_leds} LED images, got shape {d.shape}")
+    _check_finite(d, "light_dirs")
+    albedo = float(albedo)
+    if not (0.0 < albedo <= 1.0):
+        raise ValueError(f"albedo must lie in (0, 1], got {albedo!r}")
+    _check_finite(w, "white")
+    norm = np.linalg.norm(d, axis=1)
+    cos_t = d[:, 2] / np.where(norm > 0, norm, 1.0)
+    low = np.flatnonzero(~(cos_t > MIN_COS_THETA))
+    if low.size:
+        led = int(low[0])
+        raise ValueError(
+            f"LED {led} is at or below the horizon of the white standard (cos theta = {cos_t[led]:.4f} <= "
+            f"{MIN_COS_THETA}); a flat standard cannot calibrate LEDs {low.tolist()}"
+        )
+    flat = w.reshape(n_leds, -1, n_ch).astype(np.float64)
+    if mask is not None:
+        m = np.asarray(mask, dtype=bool)
+        if m.shape != w.shape[1:-1]:
+            raise ValueError(f"mask must have shape {w.shape[1:-1]} (white's middle axes), got {m.shape}")
+        if not m.any():
+            raise ValueError("mask selects no texel")
+        flat = flat[:, m.ravel()]
+    expected = albedo / np.pi * cos_t                               # eq. a/pi cos(theta_l)  (§1.1.3)
+    gain = np.median(flat, axis=1) / expected[:, None]              # eq. g = median_x W / (a/pi cos theta)
+    bad = np.argwhere(~(gain > 0))
+    if bad.size:
+        led, c = (int(v) for v in bad[0])
+        raise ValueError(
+            f"LED {led} channel {c} has gain {gain[led, c]:.3g} <= 0 on the white standard: a dead LED, a "
+            f"missing or black frame, or an over-subtracted dark frame"
+        )
+    return gain
+
+
+def apply_led_calibration(
+    radiance: np.ndarray,
+    gain: np.ndarray,
+    *,
+    out: np.ndarray | None = None,
+) -> np.ndarray:
+    """Divide each single-LED image by its LED's RGB gain.
+
+    Parameters
+    ----------
+    radiance : (n_leds, ..., C) ndarray of float
+        One image per LED (single-light or demultiplexed), channels last.
+    gain : (n_leds, C) array_like
+        From :func:`led_calibration`; finite and > 0.
+    out : (n_leds, ..., C) ndarray, optional
+        Output buffer (may be ``radiance`` itself).
+
+    Returns
+    -------
+    corrected : (n_leds, ..., C) ndarray
+        :math:`W_{l,x,c} / g_{l,c}`; float32 for float32 input, float64
+        otherwise.
+
+    Raises
+    ------
+    ValueError
+        On mismatched shapes, or a gain that is NaN/Inf or <= 0 (names the
+        LED and channel).
+    """
+    x = np.asarray(radiance)
+    g = np.asarray(gain, dtype=np.float64)
+    if x.ndim < 2 or g.shape != (x.shape[0], x.shape[-1]):
+        raise ValueError(
+            f"gain must be (n_leds, C) = ({x.shape[0] if x.ndim else '?'}, {x.shape[-1] if x.ndim else '?'}) "
+            f"for radiance of shape {x.shape}, got {g.shape}"
+        )
+    _check_finite(g, "gain")
+    bad = np.argwhere(g <= 0)
+    if bad.size:
+        led, c = (int(v) for v in bad[0])
+        raise ValueError(f"gain[{led}, {c}] = {float(g[led, c])!r} must be > 0")
+    dtype = _float_dtype(x)
+    inv = (1.0 / g).astype(dtype).reshape((x.shape[0],) + (1,) * (x.ndim - 2) + (x.shape[-1],))
+    return np.multiply(x, inv, out=out, dtype=dtype)                # eq. B = W / g_l
+
+
+def _as_matrix(matrix) -> np.ndarray:
+    m = np.asarray(matrix, dtype=np.float64)
+    if m.shape not in ((3, 3), (3, 4)):
+        raise ValueError(f"colour matrix must be (3, 3) or (3, 4) (affine), got shape {m.shape}")
+    _check_finite(m, "matrix")
+    return m
+
+
+def apply_colour_matrix(rgb: np.ndarray, matrix: np.ndarray) -> np.ndarray:
+    """Apply a camera colour-correction matrix.
+
+    Parameters
+    ----------
+    rgb : (..., 3) ndarray of float
+        Linear camera RGB, channels last.
+    matrix : (3, 3) or (3, 4) array_like
+        Linear map, or affine map with the offset in the last column.
+
+    Returns
+    -------
+    out : (..., 3) ndarray
+        :math:`M_{:, :3}\\, rgb + M_{:, 3}` per pixel; float32 for float32
+        input, float64 otherwise.
+
+    Raises
+    ------
+    ValueError
+        On a wrong shape or NaN/Inf in the matrix (names the index).
+    """
+    x = np.asarray(rgb)
+    if x.ndim < 1 or x.shape[-1] != 3:
+        raise ValueError(f"rgb must have 3 channels on its last axis, got shape {x.shape}")
+    m = _as_matrix(matrix)
+    dtype = _float_dtype(x)
+    out = x.astype(dtype, copy=False) @ m[:, :3].T.astype(dtype)    # eq. rgb' = M rgb
+    if m.shape[1] == 4:
+        out += m[:, 3].astype(dtype)                                # eq. rgb' = M rgb + o
+    return out
+
+
+def fit_colour_matrix(measured: np.ndarray, reference: np.ndarray, *, affine: bool = False) -> np.ndarray:
+    """Least-squares colour matrix from patches of a colour target.
+
+    Parameters
+    ----------
+    measured : (n, 3) array_like
+        Linear camera RGB of ``n`` patches (e.g. the 24 of a ColorChecker).
+    reference : (n, 3) array_like
+        Their known linear values in the target space.
+    affine : bool
+        Fit a (3, 4) affine map (offset in the last column) instead of (3, 3).
+
+    Returns
+    -------
+    matrix : (3, 3) or (3, 4) ndarray of float64
+        Minimises :math:`\\sum_k \\|M\\, m_k (+ o) - r_k\\|^2`; use with
+        :func:`apply_colour_matrix`.
+
+    Raises
+    ------
+    ValueError
+        On NaN/Inf (names the index), mismatched shapes, or too few or
+        degenerate patches.
+    """
+    m = np.asarray(measured, dtype=np.float64)
+    r = np.asarray(reference, dtype=np.float64)
+    if m.ndim != 2 or m.shape[1] != 3 or r.shape != m.shape:
+        raise ValueError(f"measured and reference must both be (n, 3), got {m.shape} and {r.shape}")
+    _check_finite(m, "measured")
+    _check_finite(r, "reference")
+    A = np.concatenate([m, np.ones((len(m), 1))], axis=1) if affine else m
+    if len(A) < A.shape[1] or np.linalg.matrix_rank(A) < A.shape[1]:
+        raise ValueError(
+            f"{len(m)} patches of rank {np.linalg.matrix_rank(A)} cannot determine a "
+            f"{'3x4 affine' if affine else '3x3'} colour matrix; need {A.shape[1]} independent colours"
+        )
+    X = np.linalg.lstsq(A, r, rcond=None)[0]                         # eq. min ||A X - R||_F
+    return X.T
