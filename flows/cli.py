@@ -88,6 +88,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="root seed [default: 0]")
     p.add_argument("--materials", type=int, default=6, metavar="N", help="materials to simulate [default: 6]")
 
+    p = sub.add_parser("import-raw", help="import camera raw files (DNG, any LibRaw format) into a capture store",
+                       description="Read a folder of camera raw files through LibRaw and write a capture store. "
+                                   "The manifest (CSV with header file,turntable,camera,illumination,exposure"
+                                   "[,exposure_time][,role], or a JSON list of such objects) maps each file to its "
+                                   "place; exposure times missing from it are read from the files. Everything is "
+                                   "checked first and every problem is listed before any work starts.")
+    p.add_argument("folder", metavar="FOLDER", help="folder holding the raw files")
+    p.add_argument("--manifest", required=True, metavar="FILE", help="CSV or JSON manifest")
+    p.add_argument("--device", default=None, help="dome calibration preset (tiny, bonn-dome2, ubo-dome1)")
+    p.add_argument("--calibration", default=None, metavar="JSON",
+                   help="dome calibration file (Device.to_json layout); overrides --device")
+    p.add_argument("--out", required=True, metavar="STORE", help="capture store to write (.zarr)")
+    p.add_argument("--overwrite", action="store_true", help="replace a finished store at --out")
+
     p = sub.add_parser("validate", help="check capture stores and list every problem",
                        description="Open each capture store, validate it against the btf-capture schema "
                                    "(docs/capture-store.md) and print every problem found. Exit 1 if any.")
@@ -105,6 +119,19 @@ def _simulation_config(args: argparse.Namespace):
     if args.classes:
         kwargs["classes"] = tuple(c.strip() for c in args.classes.split(",") if c.strip())
     return SimulationConfig(**kwargs)
+
+
+def _calibration(args: argparse.Namespace):
+    from btfcore.simulate.devices import Device, get_device
+
+    if args.calibration:
+        try:
+            return Device.from_json(json.loads(Path(args.calibration).read_text()))
+        except (OSError, json.JSONDecodeError, KeyError, TypeError) as exc:
+            raise ValueError(f"{args.calibration}: not a readable dome calibration ({exc})") from None
+    if not args.device:
+        raise ValueError("give the dome calibration: --device NAME or --calibration FILE.json")
+    return get_device(args.device)
 
 
 def _validate(args: argparse.Namespace) -> int:
@@ -135,16 +162,23 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     try:
         config = _simulation_config(args) if args.command == "simulate" else None
+        device = _calibration(args) if args.command == "import-raw" else None
     except ValueError as exc:
         print(f"btf {args.command}: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     start = time.perf_counter()
     try:
         with runtime(args.cluster) as (_profile, _url, client):
+            from flows.ingest import import_raw_flow
             from flows.simulate import demo_flow, simulate_flow
 
             address = client.scheduler.address
             progress = not args.no_progress
+            if args.command == "import-raw":
+                result = import_raw_flow(args.folder, args.manifest, device, args.out, address,
+                                         overwrite=args.overwrite)
+                print(json.dumps({**result, "seconds": round(time.perf_counter() - start, 2)}, indent=2))
+                return 0
             if args.command == "simulate":
                 report = simulate_flow(config, args.out, address, overwrite=args.overwrite, progress=progress)
                 out = args.out

@@ -43,3 +43,30 @@ def tiny_database(tmp_path_factory, runtime_session):
     config = SimulationConfig(device="tiny", n_materials=2, seed=7, classes=("stone", "metal"))
     report = simulate_flow(config, str(out), runtime_session[2].scheduler.address, progress=False)
     return config, out, report
+
+
+_CFA_CODES = {"R": 0, "G": 1, "B": 2}
+
+
+def _write_dng(path, cfa, pattern: str, exposure_s: float, black: int = 64, white: int = 4095) -> None:
+    """A minimal CFA DNG (DNG 1.4 tags) that LibRaw reads, written by tifffile."""
+    import tifffile
+
+    tags = [
+        (33421, "H", 2, (2, 2), False),                                   # CFARepeatPatternDim
+        (33422, "B", 4, bytes(_CFA_CODES[c] for c in pattern), False),    # CFAPattern
+        (33434, "2I", 1, (int(round(exposure_s * 1e6)), 1_000_000), False),  # ExposureTime
+        (50706, "B", 4, (1, 4, 0, 0), False),                             # DNGVersion
+        (50708, "s", 0, "btf-pipeline test camera", False),               # UniqueCameraModel
+        (50714, "I", 1, (black,), False),                                 # BlackLevel
+        (50717, "I", 1, (white,), False),                                 # WhiteLevel
+        (50721, "2i", 9, (1, 1, 0, 1, 0, 1, 0, 1, 1, 1, 0, 1, 0, 1, 0, 1, 1, 1), False),  # ColorMatrix1
+        (50778, "H", 1, (21,), False),                                    # CalibrationIlluminant1 D65
+    ]
+    tifffile.imwrite(path, cfa, photometric=32803, extratags=tags, subfiletype=0)
+
+
+@pytest.fixture(scope="session")
+def write_dng():
+    """``write_dng(path, cfa, pattern, exposure_s)``: a real DNG file for LibRaw."""
+    return _write_dng

@@ -6,34 +6,14 @@ import csv
 
 import numpy as np
 import pytest
-import tifffile
 
 from btfcore.simulate.devices import get_device
 from tasks.ingest_raw import RawImportError, import_raw, plan_raw_import, probe_raw_file
 from tasks.shared_data import shared_file
 from tasks.store import open_capture_store
 
-CFA_CODES = {"R": 0, "G": 1, "B": 2}
-
-
-def write_dng(path, cfa: np.ndarray, pattern: str, exposure_s: float, black: int = 64, white: int = 4095) -> None:
-    """A minimal CFA DNG (DNG 1.4 tags) that LibRaw reads."""
-    tags = [
-        (33421, "H", 2, (2, 2), False),                                   # CFARepeatPatternDim
-        (33422, "B", 4, bytes(CFA_CODES[c] for c in pattern), False),     # CFAPattern
-        (33434, "2I", 1, (int(round(exposure_s * 1e6)), 1_000_000), False),  # ExposureTime
-        (50706, "B", 4, (1, 4, 0, 0), False),                             # DNGVersion
-        (50708, "s", 0, "btf-pipeline test camera", False),               # UniqueCameraModel
-        (50714, "I", 1, (black,), False),                                 # BlackLevel
-        (50717, "I", 1, (white,), False),                                 # WhiteLevel
-        (50721, "2i", 9, (1, 1, 0, 1, 0, 1, 0, 1, 1, 1, 0, 1, 0, 1, 0, 1, 1, 1), False),  # ColorMatrix1
-        (50778, "H", 1, (21,), False),                                    # CalibrationIlluminant1 D65
-    ]
-    tifffile.imwrite(path, cfa, photometric=32803, extratags=tags, subfiletype=0)
-
-
 @pytest.fixture()
-def dng_capture(tmp_path):
+def dng_capture(tmp_path, write_dng):
     """2 cameras x 2 LEDs x 3 exposures of 72x80 DNGs, exposure times only in the files."""
     rng = np.random.default_rng(5)
     frames, times, rows = {}, {}, []
@@ -70,7 +50,7 @@ def test_dng_round_trip_with_exposure_from_metadata(dng_capture, tmp_path, dask_
     assert (store.n_cam, store.n_leds, store.n_turn, store.roi_shape) == (2, 2, 1, (72, 80))
 
 
-def test_every_problem_is_listed_before_any_work(dng_capture, tmp_path):
+def test_every_problem_is_listed_before_any_work(dng_capture, tmp_path, write_dng):
     folder, manifest, _, _ = dng_capture
     # truncate one file, remove another, duplicate a row, add a file of another size
     data = (folder / "c0_l1_e1.dng").read_bytes()
