@@ -102,6 +102,26 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, metavar="STORE", help="capture store to write (.zarr)")
     p.add_argument("--overwrite", action="store_true", help="replace a finished store at --out")
 
+    p = sub.add_parser("ingest", help="capture store -> BTF store (HDR, demosaic, rectify, demultiplex)",
+                       description="Process every view of a capture store: merge the exposure brackets in "
+                                   "the Bayer domain, demosaic, rectify the sample to the texture and "
+                                   "demultiplex the illumination patterns. Writes the BTF store and, beside it, "
+                                   "BTF-stem.report.json (with errors against the ground truth for simulated "
+                                   "captures). "
+                                   "Resumes an unfinished run; never overwrites another finished output.")
+    p.add_argument("capture", metavar="CAPTURE", help="capture store (.zarr)")
+    p.add_argument("--out", required=True, metavar="BTF", help="BTF store to write (.zarr)")
+    p.add_argument("--overwrite", action="store_true", help="replace an output of another capture or settings")
+
+    p = sub.add_parser("export-exr", help="write BTF textures as OpenEXR files",
+                       description="Write selected (or all) textures of a BTF store (from `btf ingest`) as "
+                                   "float32 RGB OpenEXR files named lv<row>_t<turntable>_c<camera>_l<light>.exr, "
+                                   "with the light and view directions in each header.")
+    p.add_argument("btf", metavar="BTF", help="BTF store (.zarr)")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    p.add_argument("--lv", default="all", metavar="ROWS",
+                   help="rows to export: 'all' or a comma list of indices and ranges, e.g. 0,5,10-20 [default: all]")
+
     p = sub.add_parser("validate", help="check capture stores and list every problem",
                        description="Open each capture store, validate it against the btf-capture schema "
                                    "(docs/capture-store.md) and print every problem found. Exit 1 if any.")
@@ -134,6 +154,23 @@ def _calibration(args: argparse.Namespace):
     return get_device(args.device)
 
 
+def _export_exr(args: argparse.Namespace) -> int:
+    import zarr
+
+    from tasks.export import export_exr, parse_selection
+
+    try:
+        group = zarr.open_group(args.btf, mode="r", zarr_format=3)
+        if group.attrs.get("schema") != "btf-texture":
+            raise ValueError(f"not a BTF store (schema {group.attrs.get('schema')!r}); give the output of `btf ingest`")
+        files = export_exr(args.btf, args.out, parse_selection(args.lv, group["btf"].shape[0]))
+    except (ValueError, KeyError, FileNotFoundError) as exc:
+        print(f"btf export-exr: {args.btf}: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    print(json.dumps({"out": str(Path(args.out).resolve()), "files": len(files)}, indent=2))
+    return 0
+
+
 def _validate(args: argparse.Namespace) -> int:
     from tasks.store import validate_capture_store
 
@@ -157,6 +194,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.command == "validate":
         return _validate(args)
+    if args.command == "export-exr":
+        return _export_exr(args)
 
     from flows.runtime import RuntimeUnavailable, runtime
 
@@ -174,6 +213,12 @@ def main(argv: Sequence[str] | None = None) -> int:
 
             address = client.scheduler.address
             progress = not args.no_progress
+            if args.command == "ingest":
+                from flows.ingest import ingest_flow
+
+                result = ingest_flow(args.capture, args.out, address, overwrite=args.overwrite, progress=progress)
+                print(json.dumps({**result, "seconds": round(time.perf_counter() - start, 2)}, indent=2))
+                return 0
             if args.command == "import-raw":
                 result = import_raw_flow(args.folder, args.manifest, device, args.out, address,
                                          overwrite=args.overwrite)

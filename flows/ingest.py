@@ -29,3 +29,67 @@ def import_raw_flow(folder: str, manifest: str, device: Device, out: str, schedu
                     overwrite: bool = False) -> dict[str, Any]:
     """Validate a folder of camera raw files and its manifest, then write a capture store."""
     return import_raw_stage(folder, manifest, device, out, scheduler_address, overwrite)
+
+
+@task(name="ingest-views", retries=1, cache_policy=NO_CACHE)
+def ingest_stage(capture: str, out: str, scheduler_address: str, overwrite: bool, progress: bool) -> dict[str, Any]:
+    from distributed import Client
+
+    from flows.simulate import _progress_bar
+    from tasks.ingest import ingest_capture
+
+    bar, update = _progress_bar("ingest", progress)
+    with bar, Client(scheduler_address, set_as_default=False) as client:
+        return ingest_capture(capture, out, client, overwrite=overwrite, progress=update)
+
+
+@task(name="ingest-evaluation", cache_policy=NO_CACHE)
+def ingest_evaluation(capture: str, out: str) -> dict[str, Any]:
+    from tasks.ingest import btf_error_against_truth
+    from tasks.store import open_capture_store
+
+    if not open_capture_store(capture).has_truth:
+        return {}
+    return btf_error_against_truth(out, capture)
+
+
+@flow(name="btf-ingest", log_prints=False)
+def ingest_flow(capture: str, out: str, scheduler_address: str, overwrite: bool = False,
+                progress: bool = True) -> dict[str, Any]:
+    """Capture store -> BTF store (HDR, demosaic, rectify, demultiplex per view).
+
+    Writes ``<out stem>.report.json`` beside the BTF store (never the folder's
+    ``report.json``, which may belong to the simulation that made the capture).
+    Against a simulated capture the report also holds the relative errors
+    against its ground truth.
+    """
+    from pathlib import Path
+
+    from tasks.report import write_json
+
+    stage = ingest_stage(capture, out, scheduler_address, overwrite, progress)
+    report = {"report": "btf-ingest", "capture": capture, "out": out, "stages": {"ingest": stage},
+              "errors_against_truth": ingest_evaluation(capture, out)}
+    write_json(Path(out).with_name(Path(out).stem + ".report.json"), report)
+    return report
+
+
+@task(name="ingest-database", retries=1, cache_policy=NO_CACHE)
+def ingest_database_stage(stores: list[str], out_dir: str, scheduler_address: str,
+                          progress: bool) -> dict[str, dict[str, Any]]:
+    """Ingest every capture of a simulated database; errors against each one's truth."""
+    from pathlib import Path
+
+    from distributed import Client
+
+    from flows.simulate import _progress_bar
+    from tasks.ingest import btf_error_against_truth, ingest_capture
+
+    results = {}
+    bar, update = _progress_bar("ingest", progress)
+    with bar, Client(scheduler_address, set_as_default=False) as client:
+        for store in stores:
+            out = str(Path(out_dir) / Path(store).name)
+            results[Path(store).stem] = {**ingest_capture(store, out, client, progress=update),
+                                         **btf_error_against_truth(out, store)}
+    return results

@@ -75,10 +75,23 @@ def simulate_flow(config: SimulationConfig, out_dir: str, scheduler_address: str
 @flow(name="btf-demo", log_prints=False)
 def demo_flow(out_dir: str, scheduler_address: str, seed: int = 0, n_materials: int = 6,
               progress: bool = True) -> dict[str, Any]:
-    """The main job on the embedded default: a small simulated database and its report.
+    """The main job on the embedded default: simulate a small database, ingest every
+    capture back to a BTF, and report both against the ground truth.
 
-    Later stages (ingest, models, acquisition) join this flow as they land.
+    Later stages (models, acquisition) join this flow as they land.
     """
+    from flows.ingest import ingest_database_stage
+
+    start = time.perf_counter()
     config = SimulationConfig(device="tiny", n_materials=n_materials, seed=seed)
-    return simulate_flow(config, str(Path(out_dir) / "database"), scheduler_address, overwrite=False,
-                         progress=progress, command="demo", report_dir=out_dir)
+    database = str(Path(out_dir) / "database")
+    stage = simulate_stage(config, database, scheduler_address, False, progress)
+    ingest = ingest_database_stage(stage["stores"], str(Path(out_dir) / "btf"), scheduler_address, progress)
+    run = {"command": "demo", "config": config.to_json(), "out_dir": str(Path(out_dir).resolve()),
+           "stages": {"simulate": {k: v for k, v in stage.items() if k != "stores"},
+                      "ingest": {"seconds": round(sum(r["seconds"] for r in ingest.values()), 3)}},
+           "ingest": ingest}
+    report = report_stage(config, out_dir, stage["stores"], run)
+    report["seconds"] = round(time.perf_counter() - start, 3)
+    write_json(Path(out_dir) / "report.json", report)
+    return report

@@ -283,6 +283,15 @@ def simulation_report(out_dir: str | Path, device: Device, store_paths: Sequence
              f"{m['exposure_time_s']['min']:.3g} - {m['exposure_time_s']['max']:.3g}",
              f"{m['well_exposed_fraction_min']:.4f}"] for m in materials],
     })
+    if run.get("ingest"):
+        sections.append({
+            "title": "Ingest (HDR merge, demosaic, rectify, demultiplex) against the ground truth",
+            "text": "Relative L2 error of the ingested BTF against the simulator's truth, after one "
+                    "least-squares scale per LED and channel (what a white-standard calibration measures).",
+            "table": [["material", "relative L2 (linear RGB)", "relative L2 (log Y)", "raw MB/s"]] + [
+                [name, f"{r['relative_l2_linear']:.4f}", f"{r['relative_l2_log_y']:.4f}", r.get("raw_mb_per_s", "")]
+                for name, r in run["ingest"].items()],
+        })
     report = {"report": "btf-simulate", **run, "device": {
         "name": device.name, "n_cam": device.n_cam, "n_leds": device.n_leds, "n_turn": device.n_turn,
         "n_lv": device.n_lv, "texture_shape": list(device.texture_shape), "roi_shape": list(device.roi_shape)},

@@ -130,3 +130,17 @@ def test_killed_run_resumes_bit_identically(tmp_path, dask_client):
         np.testing.assert_array_equal(resumed.raw[...], clean.raw[...])
         np.testing.assert_array_equal(resumed.exposure_time, clean.exposure_time)
         np.testing.assert_array_equal(resumed.truth["btf_2x"][...], clean.truth["btf_2x"][...])
+
+
+def test_cli_ingest_of_a_simulated_capture(tiny_database, tmp_path):
+    _config, out, _report = tiny_database
+    btf = tmp_path / "stone-btf.zarr"
+    result = _btf("--no-progress", "ingest", str(out / "000-stone.zarr"), "--out", str(btf))
+    assert result.returncode == 0, result.stderr[-3000:]
+    report = json.loads((tmp_path / "stone-btf.report.json").read_text())
+    assert report["stages"]["ingest"]["views_processed"] == 12
+    errors = report["errors_against_truth"]
+    assert 0 < errors["relative_l2_log_y"] < 0.3 and 0 < errors["relative_l2_linear"] < 0.6, errors
+    # a second run finds the finished output and does nothing
+    again = _btf("--no-progress", "ingest", str(out / "000-stone.zarr"), "--out", str(btf))
+    assert again.returncode == 0 and json.loads(again.stdout)["stages"]["ingest"]["views_processed"] == 0

@@ -1,0 +1,121 @@
+"""One view of a capture to rectified linear textures: DESIGN stages 2-6 composed.
+
+The chain for one (turntable, camera) view, thesis §1.1.3:
+
+1. HDR merge of every illumination's exposure bracket in the Bayer domain
+   (:func:`btfcore.hdr.merge_linear`, dark frames interpolated to the bracket's
+   exposure times);
+2. demosaicing of the float HDR mosaic (:func:`btfcore.demosaic.demosaic`);
+3. rectification of the sample region to the ``h x w`` texture by one sparse
+   operator per view (:func:`btfcore.rectify.rectification_matrix`);
+4. demultiplexing of the illumination patterns to single LEDs
+   (:func:`btfcore.demultiplex.demultiplex`; the identity for single-LED
+   captures).
+
+Radiometric correction (per-LED gains from a white standard) acts on the
+result of all views and lives in :mod:`btfcore.radiometric`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from btfcore.demosaic import demosaic
+from btfcore.demultiplex import demultiplex_operator
+from btfcore.hdr import dark_per_exposure, merge_linear
+from btfcore.rectify import apply_rectification, rectification_matrix
+
+
+@dataclass(frozen=True)
+class IngestSettings:
+    """Method choices of the per-view chain (hashable: it keys resumption)."""
+
+    demosaic: str = "malvar2004"
+    rectify: str = "supersample"
+    saturation_margin: float = 0.98
+
+
+def process_view(frames: np.ndarray, exposure_time: np.ndarray, patterns: np.ndarray, *,
+                 bayer_pattern: str, black_level: float, white_level: float, homography: np.ndarray,
+                 texture_shape: tuple[int, int], sample_size_m: float,
+                 dark_frames: np.ndarray | None = None, dark_exposure_time: np.ndarray | None = None,
+                 gain_e_per_dn: float | None = None, read_noise_e: float | None = None,
+                 settings: IngestSettings = IngestSettings()) -> tuple[np.ndarray, np.ndarray]:
+    """Raw brackets of one view to demultiplexed, rectified linear RGB textures.
+
+    Parameters
+    ----------
+    frames : (n_illum, n_exp, rows, cols) ndarray of uint16
+        The view's raw Bayer brackets, one per illumination pattern.
+    exposure_time : (n_illum, n_exp) ndarray
+        Seconds, increasing along the exposure axis.
+    patterns : (n_illum, n_leds) ndarray
+        Binary illumination patterns.
+    homography : (3, 3) ndarray
+        Sample-plane metres -> raw pixel ``(col, row, 1)``.
+    dark_frames : (n_dark, rows, cols) ndarray, optional
+        The camera's dark frames (DN, black level included) at ``dark_exposure_time``.
+
+    Returns
+    -------
+    textures : (n_leds, h, w, 3) ndarray of float32
+        Linear radiance in DN/s per LED (before radiometric correction).
+    valid_fraction : (n_illum,) ndarray of float64
+        Fraction of raw pixels with at least one usable exposure per pattern.
+    """
+    n_illum, n_exp, rows, cols = frames.shape
+    A = rectification_matrix(homography, (rows, cols), texture_shape, sample_size_m, method=settings.rectify)
+    rectified = np.empty((n_illum, *texture_shape, 3), dtype=np.float32)
+    valid_fraction = np.empty(n_illum)
+    for i in range(n_illum):
+        dark = None
+        if dark_frames is not None and dark_exposure_time is not None:
+            dark = dark_per_exposure(dark_frames, dark_exposure_time, exposure_time[i], black_level=black_level)
+        hdr, valid = merge_linear(frames[i], exposure_time[i], black_level=black_level, white_level=white_level,
+                                  gain_e_per_dn=gain_e_per_dn, read_noise_e=read_noise_e, dark=dark,
+                                  saturation_margin=settings.saturation_margin)
+        valid_fraction[i] = float(valid.mean())
+        rgb = demosaic(hdr, bayer_pattern, method=settings.demosaic)
+        rectified[i] = apply_rectification(A, rgb, texture_shape)
+    P = demultiplex_operator(patterns).astype(np.float32)           # (n_leds, n_illum)
+    textures = (P @ rectified.reshape(n_illum, -1)).reshape(P.shape[0], *texture_shape, 3)
+    return textures, valid_fraction
+
+
+def lv_directions(led_position: np.ndarray, camera_R: np.ndarray, camera_t: np.ndarray,
+                  turntable_angle_deg: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Light and view directions of every light/view pair in the sample frame.
+
+    Parameters
+    ----------
+    led_position : (n_leds, 3) ndarray
+        World positions (metres); lights are directional at the sample centre.
+    camera_R, camera_t : (n_cam, 3, 3), (n_cam, 3) ndarray
+        World-to-camera poses; the camera centre is :math:`-R^T t`.
+    turntable_angle_deg : (n_turn,) ndarray
+        The sample frame is the world frame rotated by this angle about z.
+
+    Returns
+    -------
+    light_dir, view_dir : (n_lv, 3) ndarray
+        Unit vectors, flattened row-major over (turntable, camera, light).
+    lv_index : (n_lv, 3) ndarray of int32
+        ``(turntable, camera, light)`` of each row.
+    """
+    leds = led_position / np.linalg.norm(led_position, axis=1, keepdims=True)
+    centres = -np.einsum("cji,cj->ci", camera_R, camera_t)             # -R^T t
+    cams = centres / np.linalg.norm(centres, axis=1, keepdims=True)
+    a = np.radians(np.asarray(turntable_angle_deg, dtype=np.float64))
+    c, s = np.cos(-a), np.sin(-a)
+    Rz = np.zeros((a.size, 3, 3))
+    Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = c, -s, s, c, 1.0   # d_s = Rz(-a) d_w
+    n_turn, n_cam, n_leds = a.size, cams.shape[0], leds.shape[0]
+    light = np.einsum("tij,lj->tli", Rz, leds)                         # (n_turn, n_leds, 3)
+    view = np.einsum("tij,cj->tci", Rz, cams)                          # (n_turn, n_cam, 3)
+    light_dir = np.broadcast_to(light[:, None], (n_turn, n_cam, n_leds, 3)).reshape(-1, 3)
+    view_dir = np.broadcast_to(view[:, :, None], (n_turn, n_cam, n_leds, 3)).reshape(-1, 3)
+    lv_index = np.stack(np.meshgrid(np.arange(n_turn), np.arange(n_cam), np.arange(n_leds), indexing="ij"),
+                        axis=-1).reshape(-1, 3).astype(np.int32)
+    return np.ascontiguousarray(light_dir), np.ascontiguousarray(view_dir), lv_index

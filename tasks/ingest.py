@@ -1,0 +1,157 @@
+"""Capture store -> BTF store, one view per Dask task (DESIGN stages 2-6).
+
+The BTF store ("btf-texture" 1.0, a Zarr v3 group) holds
+
+* ``btf``: float32 ``(n_lv, h, w, 3)`` linear radiance (DN/s before radiometric
+  correction), rows flattened over (turntable, camera, light), chunked one view
+  per chunk so that each view task owns its chunk;
+* ``light_dir``, ``view_dir``: float64 ``(n_lv, 3)`` unit vectors in the sample
+  frame; ``lv_index``: int32 ``(n_lv, 3)``;
+* ``valid_fraction``: float64 ``(n_turn, n_cam, n_illum)`` share of raw pixels with a
+  usable exposure;
+* ``written``: uint8 ``(n_turn, n_cam)`` resume markers, set after a view's data;
+* attrs: schema, version, units, source capture and its config hash, settings,
+  ``complete``.
+
+Angular resampling, radiometric correction, EXR export and the flow around it
+come with the rest of issue 3.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import time
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import zarr
+
+from btfcore.ingest import IngestSettings, lv_directions, process_view
+from tasks.store import CaptureStore, open_capture_store, to_json_attr
+
+SCHEMA_NAME = "btf-texture"
+SCHEMA_VERSION = "1.0"
+
+
+def ingest_hash(capture: CaptureStore, settings: IngestSettings) -> str:
+    """What an ingest output depends on: the capture's config hash and the settings."""
+    payload = {"capture": capture.group.attrs.get("provenance", {}).get("config_hash"),
+               "settings": asdict(settings), "schema": f"{SCHEMA_NAME}/{SCHEMA_VERSION}"}
+    return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def create_btf_store(path: str | os.PathLike, capture: CaptureStore, settings: IngestSettings, *,
+                     overwrite: bool = False) -> zarr.Group:
+    """Create the BTF store of an ingest, or reopen an unfinished one of the same ingest."""
+    key = ingest_hash(capture, settings)
+    if Path(path).exists() and not overwrite:
+        group = zarr.open_group(str(path), mode="r+", zarr_format=3)
+        attrs = dict(group.attrs)
+        if attrs.get("ingest_hash") == key:
+            return group
+        state = "a complete" if attrs.get("complete") else "an unfinished"
+        raise FileExistsError(
+            f"{path} holds {state} BTF store of another capture or settings (ingest_hash "
+            f"{attrs.get('ingest_hash')!r}, this run {key!r}); choose another --out or pass --overwrite")
+    meta = capture.meta
+    h, w = meta.texture_shape
+    n_turn, n_cam, n_illum, n_leds = capture.n_turn, capture.n_cam, capture.n_illum, capture.n_leds
+    group = zarr.open_group(str(path), mode="w", zarr_format=3)
+    group.create_array("btf", shape=(n_turn * n_cam * n_leds, h, w, 3), chunks=(n_leds, h, w, 3),
+                       dtype="float32", fill_value=0.0, compressors=None,
+                       dimension_names=["lv", "tex_row", "tex_col", "channel"])
+    light_dir, view_dir, lv_index = lv_directions(meta.led_position, meta.camera_R, meta.camera_t,
+                                                  meta.turntable_angle)
+    for name, data in (("light_dir", light_dir), ("view_dir", view_dir), ("lv_index", lv_index)):
+        group.create_array(name, shape=data.shape, dtype=data.dtype, chunks=data.shape, compressors=None)[...] = data
+    group.create_array("valid_fraction", shape=(n_turn, n_cam, n_illum), chunks=(1, 1, n_illum),
+                       dtype="float64", fill_value=0.0, compressors=None)
+    group.create_array("written", shape=(n_turn, n_cam), chunks=(1, 1), dtype="uint8", fill_value=0,
+                       compressors=None)
+    group.attrs.put(to_json_attr({
+        "schema": SCHEMA_NAME, "schema_version": SCHEMA_VERSION,
+        "units": "DN/s per unit LED drive, before radiometric correction",
+        "lv_order": ["turntable", "camera", "light"], "texture_shape": [h, w],
+        "source": str(capture.path), "ingest_hash": key, "settings": asdict(settings), "complete": False,
+        "turntable_cameras_leds": [n_turn, n_cam, n_leds],
+    }))
+    return group
+
+
+def ingest_view(capture_path: str, out_path: str, settings: IngestSettings, t: int, c: int) -> tuple[int, int]:
+    """Process one view of the capture and write its chunk of the BTF store."""
+    capture = open_capture_store(capture_path)
+    meta, sensor = capture.meta, capture.meta.sensor
+    textures, valid = process_view(
+        capture.raw[t, c], capture.exposure_time[t, c], capture.illumination,
+        bayer_pattern=meta.bayer_pattern, black_level=meta.black_level, white_level=meta.white_level,
+        homography=capture.homography[t, c], texture_shape=tuple(meta.texture_shape),
+        sample_size_m=meta.sample_size_m, dark_frames=capture.dark_frames[c],
+        dark_exposure_time=meta.dark_exposure_time, gain_e_per_dn=sensor.get("gain_e_per_dn"),
+        read_noise_e=sensor.get("read_noise_e"), settings=settings)
+    group = zarr.open_group(out_path, mode="r+", zarr_format=3)
+    n_leds = capture.n_leds
+    row = (t * capture.n_cam + c) * n_leds
+    group["btf"][row:row + n_leds] = textures                 # exactly one chunk
+    group["valid_fraction"][t, c] = valid
+    group["written"][t, c] = 1                                 # marker after the data
+    return t, c
+
+
+def ingest_capture(capture_path: str | os.PathLike, out_path: str | os.PathLike, client: Any, *,
+                   settings: IngestSettings = IngestSettings(), overwrite: bool = False,
+                   progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
+    """Ingest a capture store into a BTF store on a Dask cluster; resumes unfinished runs."""
+    from distributed import as_completed
+
+    start = time.perf_counter()
+    capture = open_capture_store(capture_path)
+    group = create_btf_store(out_path, capture, settings, overwrite=overwrite)
+    if group.attrs.get("complete"):
+        return {"views_processed": 0, "views_skipped": capture.n_turn * capture.n_cam, "seconds": 0.0}
+    written = group["written"][...]
+    pending = [(t, c) for t, c in np.ndindex(written.shape) if not written[t, c]]
+    futures = [client.submit(ingest_view, str(capture_path), str(out_path), settings, t, c, pure=False)
+               for t, c in pending]
+    for done, future in enumerate(as_completed(futures), 1):
+        future.result()
+        if progress is not None:
+            progress(done, len(futures))
+    if not group["written"][...].all():
+        raise RuntimeError(f"{out_path}: some views were not written; re-run to resume")
+    group.attrs["complete"] = True
+    raw_bytes = int(np.prod(capture.raw.shape[:3])) * capture.n_exp * int(np.prod(capture.roi_shape)) * 2
+    seconds = time.perf_counter() - start
+    return {"views_processed": len(pending), "views_skipped": written.size - len(pending),
+            "seconds": round(seconds, 3), "raw_mb_per_s": round(raw_bytes / 1e6 / max(seconds, 1e-9), 2)}
+
+
+def btf_error_against_truth(btf_path: str | os.PathLike, capture_path: str | os.PathLike) -> dict[str, float]:
+    """Relative L2 errors of an ingested BTF against a simulated capture's ground truth,
+    on linear RGB and on log luminance (``log(Y + eps)``, eps = 1e-3 mean Y).
+
+    The ingested BTF is in DN/s; each (light, channel) is brought to the truth's
+    scale by the least-squares factor over all views of that light (what a
+    white-standard calibration measures), so that the figures measure the
+    chain, not the calibration.
+    """
+    group = zarr.open_group(str(btf_path), mode="r", zarr_format=3)
+    capture = open_capture_store(capture_path)
+    btf = np.asarray(group["btf"][...], dtype=np.float64)
+    truth = np.asarray(capture.truth["btf"][...], dtype=np.float64)
+    n_leds = capture.n_leds
+    b = btf.reshape(-1, n_leds, *btf.shape[1:])
+    g = truth.reshape(b.shape)
+    scale = (b * g).sum(axis=(0, 2, 3)) / np.maximum((b * b).sum(axis=(0, 2, 3)), 1e-300)   # (n_leds, 3)
+    est = b * scale[None, :, None, None, :]
+    rel_linear = float(np.linalg.norm(est - g) / np.linalg.norm(g))
+    luma = np.array([0.2126, 0.7152, 0.0722])
+    y_est, y_true = est @ luma, g @ luma
+    eps = 1e-3 * float(y_true.mean())          # log(Y + eps): noise below 0.1 % of the mean is not log-amplified
+    log_est, log_true = np.log(np.maximum(y_est, 0.0) + eps), np.log(y_true + eps)
+    rel_log = float(np.linalg.norm(log_est - log_true) / np.linalg.norm(log_true))
+    return {"relative_l2_linear": rel_linear, "relative_l2_log_y": rel_log}
