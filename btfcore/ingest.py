@@ -69,16 +69,23 @@ def process_view(frames: np.ndarray, exposure_time: np.ndarray, patterns: np.nda
     A = rectification_matrix(homography, (rows, cols), texture_shape, sample_size_m, method=settings.rectify)
     rectified = np.empty((n_illum, *texture_shape, 3), dtype=np.float32)
     valid_fraction = np.empty(n_illum)
-    for i in range(n_illum):
-        dark = None
-        if dark_frames is not None and dark_exposure_time is not None:
-            dark = dark_per_exposure(dark_frames, dark_exposure_time, exposure_time[i], black_level=black_level)
-        hdr, valid = merge_linear(frames[i], exposure_time[i], black_level=black_level, white_level=white_level,
-                                  gain_e_per_dn=gain_e_per_dn, read_noise_e=read_noise_e, dark=dark,
-                                  saturation_margin=settings.saturation_margin)
-        valid_fraction[i] = float(valid.mean())
-        rgb = demosaic(hdr, bayer_pattern, method=settings.demosaic)
-        rectified[i] = apply_rectification(A, rgb, texture_shape)
+    block = 32  # illuminations rectified by one sparse product: (rows, cols, 3 * block) float32
+    stack = np.empty((rows, cols, 3 * min(block, n_illum)), dtype=np.float32)
+    for first in range(0, n_illum, block):
+        members = range(first, min(first + block, n_illum))
+        for k, i in enumerate(members):
+            dark = None
+            if dark_frames is not None and dark_exposure_time is not None:
+                dark = dark_per_exposure(dark_frames, dark_exposure_time, exposure_time[i], black_level=black_level)
+            hdr, valid = merge_linear(frames[i], exposure_time[i], black_level=black_level,
+                                      white_level=white_level, gain_e_per_dn=gain_e_per_dn,
+                                      read_noise_e=read_noise_e, dark=dark,
+                                      saturation_margin=settings.saturation_margin)
+            valid_fraction[i] = float(valid.mean())
+            stack[:, :, 3 * k:3 * k + 3] = demosaic(hdr, bayer_pattern, method=settings.demosaic)
+        n = len(members)
+        out = apply_rectification(A, stack[:, :, :3 * n], texture_shape)           # (h, w, 3n)
+        rectified[first:first + n] = np.moveaxis(out.reshape(*texture_shape, n, 3), 2, 0)
     P = demultiplex_operator(patterns).astype(np.float32)           # (n_leds, n_illum)
     textures = (P @ rectified.reshape(n_illum, -1)).reshape(P.shape[0], *texture_shape, 3)
     return textures, valid_fraction
