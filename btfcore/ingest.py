@@ -69,14 +69,19 @@ def process_view(frames: np.ndarray, exposure_time: np.ndarray, patterns: np.nda
     A = rectification_matrix(homography, (rows, cols), texture_shape, sample_size_m, method=settings.rectify)
     rectified = np.empty((n_illum, *texture_shape, 3), dtype=np.float32)
     valid_fraction = np.empty(n_illum)
+    dark_line = None
+    if dark_frames is not None and dark_exposure_time is not None:
+        # the dark model is linear in time: fit it once per view, evaluate per bracket
+        d1, d2 = dark_per_exposure(dark_frames, dark_exposure_time, [1.0, 2.0], black_level=black_level)
+        dark_line = (2.0 * d1 - d2, d2 - d1)                               # offset (DN), rate (DN/s)
     block = 32  # illuminations rectified by one sparse product: (rows, cols, 3 * block) float32
     stack = np.empty((rows, cols, 3 * min(block, n_illum)), dtype=np.float32)
     for first in range(0, n_illum, block):
         members = range(first, min(first + block, n_illum))
         for k, i in enumerate(members):
             dark = None
-            if dark_frames is not None and dark_exposure_time is not None:
-                dark = dark_per_exposure(dark_frames, dark_exposure_time, exposure_time[i], black_level=black_level)
+            if dark_line is not None:
+                dark = dark_line[0] + dark_line[1] * exposure_time[i][:, None, None]
             hdr, valid = merge_linear(frames[i], exposure_time[i], black_level=black_level,
                                       white_level=white_level, gain_e_per_dn=gain_e_per_dn,
                                       read_noise_e=read_noise_e, dark=dark,
