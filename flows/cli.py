@@ -122,6 +122,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lv", default="all", metavar="ROWS",
                    help="rows to export: 'all' or a comma list of indices and ranges, e.g. 0,5,10-20 [default: all]")
 
+    p = sub.add_parser("evaluate", help="measure a result against the simulator's ground truth",
+                       description="Compare a result with the ground truth of a simulated capture and print the "
+                                   "metrics as JSON; they are also written to --report.")
+    p.add_argument("what", choices=("ingest",), help="ingest: a BTF store from `btf ingest` against its capture's truth")
+    p.add_argument("--truth", required=True, metavar="SIM", help="simulated capture store (with truth/)")
+    p.add_argument("--btf", required=True, metavar="BTF", help="BTF store from `btf ingest`")
+    p.add_argument("--report", default="report.json", metavar="PATH", help="where to write the metrics [default: report.json]")
+
     p = sub.add_parser("validate", help="check capture stores and list every problem",
                        description="Open each capture store, validate it against the btf-capture schema "
                                    "(docs/capture-store.md) and print every problem found. Exit 1 if any.")
@@ -171,6 +179,24 @@ def _export_exr(args: argparse.Namespace) -> int:
     return 0
 
 
+def _evaluate(args: argparse.Namespace) -> int:
+    from tasks.ingest import btf_error_against_truth
+    from tasks.report import write_json
+    from tasks.store import CaptureStoreError, open_capture_store
+
+    try:
+        if not open_capture_store(args.truth).has_truth:
+            raise ValueError(f"{args.truth} has no ground truth (truth/ group); give a simulated capture store")
+        metrics = {"evaluate": args.what, "truth": str(args.truth), "btf": str(args.btf),
+                   **btf_error_against_truth(args.btf, args.truth)}
+    except (ValueError, KeyError, FileNotFoundError, CaptureStoreError) as exc:
+        print(f"btf evaluate {args.what}: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    write_json(args.report, metrics)
+    print(json.dumps(metrics, indent=2))
+    return 0
+
+
 def _validate(args: argparse.Namespace) -> int:
     from tasks.store import validate_capture_store
 
@@ -196,6 +222,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return _validate(args)
     if args.command == "export-exr":
         return _export_exr(args)
+    if args.command == "evaluate":
+        return _evaluate(args)
 
     from flows.runtime import RuntimeUnavailable, runtime
 

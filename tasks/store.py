@@ -947,6 +947,11 @@ def _validate_group(
 ) -> list[Problem]:
     problems: list[Problem] = []
     attrs = dict(group.attrs)
+    other = attrs.get("schema")
+    if isinstance(other, str) and other != SCHEMA_NAME:
+        # another kind of store (e.g. a btf-texture store): one problem, not a list of everything missing
+        return [Problem("attrs", "schema", repr(SCHEMA_NAME), repr(other),
+                        "this is not a capture store; give the capture store (btf simulate / btf import-raw output)")]
     _check_attrs(attrs, problems)
 
     members = dict(group.members(max_depth=None))

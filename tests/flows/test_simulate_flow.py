@@ -144,3 +144,14 @@ def test_cli_ingest_of_a_simulated_capture(tiny_database, tmp_path):
     # a second run finds the finished output and does nothing
     again = _btf("--no-progress", "ingest", str(out / "000-stone.zarr"), "--out", str(btf))
     assert again.returncode == 0 and json.loads(again.stdout)["stages"]["ingest"]["views_processed"] == 0
+    # btf evaluate ingest prints the same figures and writes them to report.json
+    evaluation = _btf("evaluate", "ingest", "--truth", str(out / "000-stone.zarr"), "--btf", str(btf),
+                      "--report", str(tmp_path / "report.json"))
+    assert evaluation.returncode == 0, evaluation.stderr
+    metrics = json.loads((tmp_path / "report.json").read_text())
+    assert metrics == json.loads(evaluation.stdout)
+    assert metrics["relative_l2_log_y"] == pytest.approx(errors["relative_l2_log_y"])
+    # swapping the arguments names the mistake in one line
+    swapped = _btf("evaluate", "ingest", "--truth", str(btf), "--btf", str(out / "000-stone.zarr"))
+    assert swapped.returncode == 1 and "this is not a capture store" in swapped.stderr
+    assert swapped.stderr.count("\n  - ") == 1
