@@ -50,7 +50,8 @@ def _add_simulation_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--illumination", default="single", choices=("single", "multiplexed", "both"),
                    help="single-LED patterns, S-matrix multiplexed patterns, or both [default: single]")
     p.add_argument("--classes", default=None, metavar="A,B,...",
-                   help="comma-separated material classes to cycle through [default: all]")
+                   help="comma-separated material classes to cycle through; 'white-standard' simulates the "
+                        "flat white target of a radiometric calibration [default: the six material classes]")
     p.add_argument("--bayer", default=None, choices=("RGGB", "BGGR", "GRBG", "GBRG"),
                    help="override the device's Bayer layout")
     p.add_argument("--texture-size", type=int, default=None, metavar="PX",

@@ -25,7 +25,7 @@ import btfcore
 from btfcore.hadamard import multiplexing_patterns
 from btfcore.simulate.camera import holder_radiance, render_frame, sample_mask
 from btfcore.simulate.devices import DEVICE_NAMES, Device, get_device
-from btfcore.simulate.materials import MATERIAL_CLASSES, MaterialMaps, make_material
+from btfcore.simulate.materials import MATERIAL_CLASSES, MaterialMaps, make_material, white_standard
 from btfcore.simulate.render import downsample2, horizon_map, render_view
 from btfcore.simulate.sensor import choose_bracket, dark_current_map, dark_frames, expose
 from tasks.store import (
@@ -37,6 +37,8 @@ from tasks.store import (
 from tasks.textures import load_texture_sources
 
 ILLUMINATIONS = ("single", "multiplexed", "both")
+#: The flat Lambertian white target (albedo 0.99) a radiometric calibration captures.
+WHITE_STANDARD = "white-standard"
 #: Seed of the device itself (LED gains, sensor fixed pattern): one physical dome.
 DEVICE_SEED = 20151270
 #: Exposure times of the calibration dark frames, seconds.
@@ -59,7 +61,8 @@ class SimulationConfig:
     illumination : {'single', 'multiplexed', 'both'}
         Single-LED patterns, S-matrix patterns, or both stacked (singles first).
     classes : tuple of str
-        Material classes to cycle through.
+        Material classes to cycle through; ``"white-standard"`` is the flat
+        Lambertian target of a radiometric calibration.
     bayer_pattern : str, optional
         Override the device's Bayer layout.
     texture_size : int, optional
@@ -89,9 +92,10 @@ class SimulationConfig:
             problems.append(f"n_materials must be >= 1, got {self.n_materials}")
         if self.illumination not in ILLUMINATIONS:
             problems.append(f"illumination {self.illumination!r} is unknown; choose one of {', '.join(ILLUMINATIONS)}")
-        bad = [c for c in self.classes if c not in MATERIAL_CLASSES]
+        bad = [c for c in self.classes if c not in (*MATERIAL_CLASSES, WHITE_STANDARD)]
         if bad or not self.classes:
-            problems.append(f"material classes {bad or '[]'} are unknown; choose from {', '.join(MATERIAL_CLASSES)}")
+            problems.append(f"material classes {bad or '[]'} are unknown; choose from "
+                            f"{', '.join(MATERIAL_CLASSES)} or {WHITE_STANDARD}")
         if self.texture_size is not None and self.texture_size < 4:
             problems.append(f"texture_size must be >= 4, got {self.texture_size}")
         if not 0.0 <= self.psf_sigma_px <= 10.0:
@@ -222,7 +226,10 @@ def prepare_material(store_path: str, config: SimulationConfig, spec: MaterialSp
     device = config.build_device()
     store = open_capture_store(store_path, mode="r+", require_complete=False)
     h, w = device.texture_shape
-    maps = make_material(spec.class_name, spec.seed, (2 * h, 2 * w), load_texture_sources())
+    if spec.class_name == WHITE_STANDARD:
+        maps = white_standard((2 * h, 2 * w))
+    else:
+        maps = make_material(spec.class_name, spec.seed, (2 * h, 2 * w), load_texture_sources())
     for name in _MAP_NAMES:
         store.write_truth_map(name, np.ascontiguousarray(getattr(maps, name), dtype=np.float32))
     store.write_truth_map("horizon", horizon_map(maps.height))

@@ -74,3 +74,24 @@ def test_error_against_truth_is_reported(capture, tmp_path, dask_client):
     ingest_capture(capture, out, dask_client)
     errors = btf_error_against_truth(out, capture)
     assert 0 < errors["relative_l2_log_y"] < 0.3 and 0 < errors["relative_l2_linear"] < 0.5, errors
+
+
+def test_white_standard_capture_calibrates_the_leds(tmp_path, dask_client):
+    """The simulator captures a white standard; its ingest yields each LED's gain (issue 3, item 4)."""
+    from btfcore.radiometric import led_calibration
+
+    config = SimulationConfig(device="tiny", n_materials=1, seed=2, classes=("white-standard",), n_turntable=1)
+    capture = simulate_database(config, tmp_path / "white", dask_client).stores[0]
+    out = tmp_path / "white-btf.zarr"
+    ingest_capture(capture, out, dask_client)
+    group = zarr.open_group(str(out), mode="r")
+    n_leds = 16
+    white = np.moveaxis(group["btf"][...].reshape(4, n_leds, 32, 32, 3), 1, 0)     # (leds, views, h, w, 3)
+    light = group["light_dir"][...][:n_leds]
+    mask = np.zeros((4, 32, 32), bool)
+    mask[:3, 4:-4, 4:-4] = True          # leave out the grazing 75-degree camera and the borders
+    gain = led_calibration(white, light, mask=mask)
+    device = config.build_device()
+    # what the chain should measure: LED gain x camera sensitivity / ADC gain (DN/s per unit radiance)
+    expected = device.led_rgb_gain * np.array(device.sensor.sensitivity_rgb) / device.sensor.gain_e_per_dn
+    np.testing.assert_allclose(gain, expected, rtol=0.02)
