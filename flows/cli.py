@@ -203,9 +203,7 @@ def _validate(args: argparse.Namespace) -> int:
 
     failed = 0
     for path in args.stores:
-        problems = validate_capture_store(path)
-        if args.allow_incomplete:
-            problems = [p for p in problems if p.array not in ("written", "complete")]
+        problems = validate_capture_store(path, require_complete=not args.allow_incomplete)
         if problems:
             failed += 1
             print(f"{path}: {len(problems)} problem(s)")
@@ -237,42 +235,34 @@ def main(argv: Sequence[str] | None = None) -> int:
     start = time.perf_counter()
     try:
         with runtime(args.cluster) as (_profile, _url, client):
-            from flows.ingest import import_raw_flow
-            from flows.simulate import demo_flow, simulate_flow
-
-            address = client.scheduler.address
-            progress = not args.no_progress
-            if args.command == "ingest":
-                from flows.ingest import ingest_flow
-
-                result = ingest_flow(args.capture, args.out, address, overwrite=args.overwrite, progress=progress)
-                print(json.dumps({**result, "seconds": round(time.perf_counter() - start, 2)}, indent=2))
-                return 0
-            if args.command == "import-raw":
-                result = import_raw_flow(args.folder, args.manifest, device, args.out, address,
-                                         overwrite=args.overwrite)
-                print(json.dumps({**result, "seconds": round(time.perf_counter() - start, 2)}, indent=2))
-                return 0
-            if args.command == "simulate":
-                report = simulate_flow(config, args.out, address, overwrite=args.overwrite, progress=progress)
-                out = args.out
-            else:
-                report = demo_flow(args.out, address, seed=args.seed, n_materials=args.materials,
-                                   progress=progress)
-                out = args.out
+            summary = _run_flow(args, client.scheduler.address, config, device)
     except RuntimeUnavailable as exc:
         print(f"btf {args.command}: {exc}", file=sys.stderr)
         return EXIT_RUNTIME
     except (ValueError, FileExistsError, FileNotFoundError) as exc:
         print(f"btf {args.command}: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    summary = {"command": args.command, "out": str(Path(out).resolve()),
-               "report_json": str(Path(out).resolve() / "report.json"),
-               "report_html": str(Path(out).resolve() / "report.html"),
-               "materials": len(report.get("materials", [])),
-               "seconds": round(time.perf_counter() - start, 2)}
-    print(json.dumps(summary, indent=2))
+    print(json.dumps({**summary, "seconds": round(time.perf_counter() - start, 2)}, indent=2))
     return 0
+
+
+def _run_flow(args: argparse.Namespace, address: str, config, device) -> dict:
+    """Run the flow of a computing subcommand on the cluster at ``address``; a JSON summary."""
+    from flows.ingest import import_raw_flow, ingest_flow
+    from flows.simulate import demo_flow, simulate_flow
+
+    progress = not args.no_progress
+    if args.command == "ingest":
+        return ingest_flow(args.capture, args.out, address, overwrite=args.overwrite, progress=progress)
+    if args.command == "import-raw":
+        return import_raw_flow(args.folder, args.manifest, device, args.out, address, overwrite=args.overwrite)
+    if args.command == "simulate":
+        report = simulate_flow(config, args.out, address, overwrite=args.overwrite, progress=progress)
+    else:
+        report = demo_flow(args.out, address, seed=args.seed, n_materials=args.materials, progress=progress)
+    out = Path(args.out).resolve()
+    return {"command": args.command, "out": str(out), "report_json": str(out / "report.json"),
+            "report_html": str(out / "report.html"), "materials": len(report.get("materials", []))}
 
 
 if __name__ == "__main__":  # pragma: no cover
