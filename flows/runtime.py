@@ -153,28 +153,38 @@ def dask_client(profile: Profile, prefect_url: str | None = None) -> Iterator[An
     for key in ("PREFECT_LOGGING_LEVEL", "PREFECT_LOGGING_TO_API_ENABLED", "BTF_SHARED_DATA"):
         if key in os.environ:
             environ[key] = os.environ[key]
+    # distributed's nanny applies pre-spawn-environ to this process's os.environ too:
+    # restore it afterwards, or a later run in this process would inherit a dead server's URL
+    saved = {key: os.environ.get(key) for key in environ}
     dashboard = bool(spec.pop("dashboard", False))
-    with dask.config.set({"distributed.nanny.pre-spawn-environ": environ,
-                          "distributed.worker.daemon": False}):
-        try:
-            cluster = LocalCluster(
-                n_workers=int(spec.pop("n_workers", 2)),
-                threads_per_worker=int(spec.pop("threads_per_worker", 1)),
-                memory_limit=spec.pop("memory_limit", "4GiB"),
-                processes=bool(spec.pop("processes", True)),
-                # the scheduler always serves HTTP (metrics); a random port avoids clashes
-                dashboard_address=":8787" if dashboard else ":0",
-                scheduler_kwargs={"dashboard": dashboard},
-                silence_logs=logging.WARNING,
-                **spec,
-            )
-        except Exception as exc:
-            raise RuntimeUnavailable(f"could not start the Dask cluster of {profile.path}: {exc}") from exc
-        try:
-            with Client(cluster) as client:
-                yield client
-        finally:
-            cluster.close()
+    try:
+        with dask.config.set({"distributed.nanny.pre-spawn-environ": environ,
+                              "distributed.worker.daemon": False}):
+            try:
+                cluster = LocalCluster(
+                    n_workers=int(spec.pop("n_workers", 2)),
+                    threads_per_worker=int(spec.pop("threads_per_worker", 1)),
+                    memory_limit=spec.pop("memory_limit", "4GiB"),
+                    processes=bool(spec.pop("processes", True)),
+                    # the scheduler always serves HTTP (metrics); a random port avoids clashes
+                    dashboard_address=":8787" if dashboard else ":0",
+                    scheduler_kwargs={"dashboard": dashboard},
+                    silence_logs=logging.WARNING,
+                    **spec,
+                )
+            except Exception as exc:
+                raise RuntimeUnavailable(f"could not start the Dask cluster of {profile.path}: {exc}") from exc
+            try:
+                with Client(cluster) as client:
+                    yield client
+            finally:
+                cluster.close()
+    finally:
+        for key, value in saved.items():
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value
 
 
 @contextlib.contextmanager

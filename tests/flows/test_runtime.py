@@ -44,3 +44,29 @@ def test_profile_errors_name_the_file(tmp_path):
     with pytest.raises(RuntimeUnavailable, match=r"slurm\.yaml: cluster kind 'slurm' is not supported yet"):
         with dask_client(load_profile(slurm)):
             pass
+
+
+def test_a_finished_run_leaves_the_environment_as_it_was(tmp_path):
+    """distributed applies the workers' environment to this process too; the runtime undoes it,
+    so that a second run in the same process does not inherit the first one's Prefect URL."""
+    import subprocess
+    import sys
+
+    code = (
+        "import os\n"
+        "from flows.runtime import runtime\n"
+        "if __name__ == '__main__':\n"
+        "    before = {k: os.environ.get(k) for k in ('PREFECT_API_URL', 'OMP_NUM_THREADS')}\n"
+        "    for _ in range(2):\n"
+        "        with runtime() as (_p, url, client):\n"
+        "            assert client.run(lambda: os.environ['PREFECT_API_URL'])\n"
+        "    after = {k: os.environ.get(k) for k in before}\n"
+        "    print(before == after)\n"
+    )
+    script = tmp_path / "twice.py"
+    script.write_text(code)
+    env = {k: v for k, v in os.environ.items() if k not in ("PREFECT_API_URL", "OMP_NUM_THREADS")}
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=240, env=env,
+                         cwd=str(tmp_path))
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip().endswith("True")
