@@ -70,3 +70,34 @@ def _write_dng(path, cfa, pattern: str, exposure_s: float, black: int = 64, whit
 def write_dng():
     """``write_dng(path, cfa, pattern, exposure_s)``: a real DNG file for LibRaw."""
     return _write_dng
+
+
+def _kill_btf_when(args: list[str], ready, timeout: float = 240.0) -> None:
+    """Run ``python -m flows.cli ARGS`` and SIGKILL its whole process group (the CLI, its
+    Prefect server and its Dask workers) as soon as ``ready()`` is true."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    proc = subprocess.Popen([sys.executable, "-m", "flows.cli", "--no-progress", *args],
+                            cwd=Path(__file__).resolve().parents[1], start_new_session=True,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + timeout
+        while not ready() and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert proc.poll() is None, "the run finished before it could be killed"
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=30)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+
+
+@pytest.fixture(scope="session")
+def kill_btf_when():
+    """``kill_btf_when(args, ready)``: a real mid-run SIGKILL of a `btf` command."""
+    return _kill_btf_when

@@ -3,11 +3,8 @@
 from __future__ import annotations
 
 import json
-import os
-import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -23,29 +20,19 @@ def _written(btf: Path) -> int:
     return sum(1 for _ in btf.glob("written/c/*/*"))
 
 
-def test_killed_ingest_resumes_bit_identically(tmp_path, dask_client):
+def test_killed_ingest_resumes_bit_identically(tmp_path, dask_client, kill_btf_when):
     # a pruned bonn-dome2 capture: 11 views of 198 brackets, slow enough to kill mid-run
     config = SimulationConfig(device="bonn-dome2", n_materials=1, seed=4, classes=("leather",),
                               n_turntable=1, texture_size=32)
     capture = simulate_database(config, tmp_path / "db", dask_client).stores[0]
     btf = tmp_path / "btf.zarr"
-    cmd = [sys.executable, "-m", "flows.cli", "--no-progress", "ingest", capture, "--out", str(btf)]
-    proc = subprocess.Popen(cmd, cwd=ROOT, start_new_session=True, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL)
-    try:
-        deadline = time.monotonic() + 240
-        while _written(btf) < 2 and proc.poll() is None and time.monotonic() < deadline:
-            time.sleep(0.05)
-        assert proc.poll() is None, "the ingest finished before it could be killed"
-        os.killpg(proc.pid, signal.SIGKILL)
-        proc.wait(timeout=30)
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
+    args = ["ingest", capture, "--out", str(btf)]
+    kill_btf_when(args, lambda: _written(btf) >= 2)
     done_before = _written(btf)
     assert 2 <= done_before < 11
 
-    again = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
+    again = subprocess.run([sys.executable, "-m", "flows.cli", "--no-progress", *args], cwd=ROOT,
+                           capture_output=True, text=True, timeout=300)
     assert again.returncode == 0, again.stderr[-3000:]
     stage = json.loads(again.stdout)["stages"]["ingest"]
     # a view counts as done only once its marker is on disk, and markers follow the data

@@ -90,29 +90,14 @@ def _written_views(out: Path) -> int:
     return sum(1 for _ in out.glob("*.zarr/truth/written/c/*/*"))
 
 
-def test_killed_run_resumes_bit_identically(tmp_path, dask_client):
-    import signal
-    import time
-
+def test_killed_run_resumes_bit_identically(tmp_path, dask_client, kill_btf_when):
     import numpy as np
 
     from tasks.simulate import SimulationConfig, simulate_database
 
     args = ["--materials", "2", "--seed", "21", "--texture-size", "48", "--classes", "leather,stone"]
     out = tmp_path / "killed"
-    proc = subprocess.Popen([sys.executable, "-m", "flows.cli", "--no-progress", "simulate", *args,
-                             "--out", str(out)], cwd=ROOT, start_new_session=True,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    try:
-        deadline = time.monotonic() + 240
-        while _written_views(out) < 3 and proc.poll() is None and time.monotonic() < deadline:
-            time.sleep(0.05)
-        assert proc.poll() is None, "the run finished before it could be killed"
-        os.killpg(proc.pid, signal.SIGKILL)  # the CLI, its Prefect server and its Dask workers
-        proc.wait(timeout=30)
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
+    kill_btf_when(["simulate", *args, "--out", str(out)], lambda: _written_views(out) >= 3)
     done_before = _written_views(out)
     assert 3 <= done_before < 24
 
