@@ -46,6 +46,7 @@ from .simulate.devices import UBO_DOME1_RINGS, ring_directions, spherical_to_car
 __all__ = [
     "DIRECTION_TOL",
     "barycentric_weights",
+    "lv_outside_hull",
     "lv_product",
     "outside_hull",
     "parabolic_map",
@@ -437,6 +438,65 @@ def resample_weights(
     W.sum_duplicates()
     W.eliminate_zeros()
     return W
+
+
+def lv_outside_hull(
+    src_light: np.ndarray,
+    src_view: np.ndarray,
+    dst_light: np.ndarray,
+    dst_view: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Which target light/view pairs :func:`resample_weights` extrapolates.
+
+    Parameters
+    ----------
+    src_light, src_view : (n_lv_src, 3) array_like
+        Light and view direction of every source row (as for :func:`resample_weights`).
+    dst_light, dst_view : (n_lv_dst, 3) array_like
+        Light and view direction of every target row.
+
+    Returns
+    -------
+    view_outside : (n_lv_dst,) ndarray of bool
+        The target view lies outside the hull of the distinct source views
+        (its view weights are those of the nearest hull point).
+    light_outside : (n_lv_dst,) ndarray of bool
+        For at least one source view :math:`j` with :math:`\\mu_j(v) > 0`,
+        the target light lies outside the hull of the lights measured with
+        view :math:`j` (its light weights there are those of the nearest hull
+        point).
+
+    Notes
+    -----
+    A row with neither flag is a true barycentric interpolation: functions
+    of the form :math:`a + b^T p(l) + c^T p(v) + p(l)^T D p(v)` are
+    reproduced exactly there. The source views and their light sets are
+    grouped exactly as in :func:`resample_weights`.
+    """
+    sl = _as_dirs(src_light, "src_light")
+    sv = _as_dirs(src_view, "src_view")
+    dl = _as_dirs(dst_light, "dst_light")
+    dv = _as_dirs(dst_view, "dst_view")
+    if len(sl) != len(sv) or len(dl) != len(dv):
+        raise ValueError(f"src_light/src_view have {len(sl)}/{len(sv)} rows and dst_light/dst_view "
+                         f"{len(dl)}/{len(dv)}: one light and one view per row")
+    sv_u, sv_inv = unique_directions(sv)
+    dv_u, dv_inv = unique_directions(dv)
+    dl_u, dl_inv = unique_directions(dl)
+    view_out = outside_hull(sv_u, dv_u)[dv_inv]
+    V = barycentric_weights(sv_u, dv_u).tocoo()                   # (n_dv, n_sv): which source views each uses
+    light_out_u = np.zeros((len(sv_u), len(dl_u)), dtype=bool)    # (n_sv, n_dl)
+    cache: dict[bytes, np.ndarray] = {}
+    for j in np.unique(V.col):
+        lights = sl[sv_inv == j]
+        key = np.round(lights / DIRECTION_TOL).astype(np.int64).tobytes()
+        if key not in cache:
+            cache[key] = outside_hull(lights, dl_u)
+        light_out_u[j] = cache[key]
+    # a target (light, view) is extrapolated in light if any source view it draws on extrapolates
+    used = sp.csr_matrix((np.ones(V.nnz), (V.row, V.col)), shape=V.shape)       # (n_dv, n_sv)
+    light_out_dv = (used @ light_out_u.astype(np.float64)) > 0                   # (n_dv, n_dl)
+    return view_out, light_out_dv[dv_inv, dl_inv]
 
 
 def resample(B: np.ndarray, W) -> np.ndarray:

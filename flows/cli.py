@@ -114,6 +114,26 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, metavar="BTF", help="BTF store to write (.zarr)")
     p.add_argument("--overwrite", action="store_true", help="replace an output of another capture or settings")
 
+    p = sub.add_parser("resample", help="BTF store -> BTF store on a common light x view sampling",
+                       description="Resample a finished BTF store (from `btf ingest`) to a common light x view "
+                                   "sampling: every light with every view of the UBO2014 151 x 151 set, or of "
+                                   "your own JSON file. Values are barycentric interpolations on Delaunay "
+                                   "triangulations of the measured directions (3 views x 3 lights); a target "
+                                   "outside the measured hull takes the values of the nearest hull point and is "
+                                   "flagged in the output's outside_hull array. Writes a new BTF store at --out "
+                                   "(rows ordered view-major, light fastest, one chunk per target view; "
+                                   "docs/btf-store.md, 'Resampled stores') and, beside it, "
+                                   "BTF2-stem.report.json (rows, outside-hull count, seconds). The input is never "
+                                   "modified. An unfinished run resumes with the target views not yet written; a "
+                                   "store of another source or sampling at --out is never overwritten unless --overwrite.")
+    p.add_argument("btf", metavar="BTF", help="finished BTF store from `btf ingest` (.zarr)")
+    p.add_argument("--out", required=True, metavar="BTF2", help="resampled BTF store to write (.zarr)")
+    p.add_argument("--sampling", default="ubo2014", metavar="ubo2014|FILE.json",
+                   help='target directions: ubo2014 (151 lights x 151 views) or a JSON file {"light_dirs": '
+                        '[[x, y, z], ...], "view_dirs": [[x, y, z], ...]} in the sample frame (z = surface '
+                        'normal, z > 0; normalised here) [default: ubo2014]')
+    p.add_argument("--overwrite", action="store_true", help="replace an output of another source or sampling")
+
     p = sub.add_parser("export-exr", help="write BTF textures as OpenEXR files",
                        description="Write selected (or all) textures of a BTF store (from `btf ingest`) as "
                                    "float32 RGB OpenEXR files named lv<row>_t<turntable>_c<camera>_l<light>.exr, "
@@ -229,7 +249,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         config = _simulation_config(args) if args.command == "simulate" else None
         device = _calibration(args) if args.command == "import-raw" else None
-    except ValueError as exc:
+        if args.command == "resample":  # bad input is named before a cluster starts
+            from tasks.resample import check_inputs
+            check_inputs(args.btf, args.out, args.sampling, overwrite=args.overwrite)
+    except (ValueError, FileNotFoundError, FileExistsError) as exc:
         print(f"btf {args.command}: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     start = time.perf_counter()
@@ -254,6 +277,9 @@ def _run_flow(args: argparse.Namespace, address: str, config, device) -> dict:
     progress = not args.no_progress
     if args.command == "ingest":
         return ingest_flow(args.capture, args.out, address, overwrite=args.overwrite, progress=progress)
+    if args.command == "resample":
+        from flows.resample import resample_flow
+        return resample_flow(args.btf, args.out, args.sampling, address, overwrite=args.overwrite, progress=progress)
     if args.command == "import-raw":
         return import_raw_flow(args.folder, args.manifest, device, args.out, address, overwrite=args.overwrite)
     if args.command == "simulate":

@@ -32,7 +32,8 @@ def parse_selection(text: str | None, n_lv: int) -> list[int]:
 
 
 def export_exr(btf_path: str | os.PathLike, out_dir: str | os.PathLike, rows: Sequence[int] | None = None) -> list[Path]:
-    """Write the selected textures of a BTF store as ``lv<index>_t<t>_c<c>_l<l>.exr`` (float32 RGB, ZIP).
+    """Write the selected textures of a BTF store as ``lv<index>_t<t>_c<c>_l<l>.exr`` (float32 RGB, ZIP);
+    a resampled store's (``lv_order`` view, light) as ``lv<index>_v<v>_l<l>.exr``.
 
     Light and view directions go into each file's header (``btf_light_dir``,
     ``btf_view_dir``, sample frame) so a file is self-describing.
@@ -46,13 +47,14 @@ def export_exr(btf_path: str | os.PathLike, out_dir: str | os.PathLike, rows: Se
     btf = group["btf"]
     rows = list(range(btf.shape[0])) if rows is None else list(rows)
     light, view, index = group["light_dir"][...], group["view_dir"][...], group["lv_index"][...]
+    order = group.attrs.get("lv_order", ["turntable", "camera", "light"])
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     written = []
     for row in rows:
         texture = np.ascontiguousarray(btf[row], dtype=np.float32)
-        t, c, l = (int(v) for v in index[row])
-        path = out / f"lv{row:05d}_t{t}_c{c}_l{l}.exr"
+        name = "_".join(f"{axis[0]}{int(i)}" for axis, i in zip(order, index[row]))
+        path = out / f"lv{row:05d}_{name}.exr"
         header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
                   "btf_light_dir": light[row].astype(np.float32).tolist().__repr__(),
                   "btf_view_dir": view[row].astype(np.float32).tolist().__repr__()}

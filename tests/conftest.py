@@ -45,6 +45,20 @@ def tiny_database(tmp_path_factory, runtime_session):
     return config, out, report
 
 
+@pytest.fixture(scope="session")
+def tiny_btf(tmp_path_factory, dask_client):
+    """A tiny capture (one turntable position: 4 views x 16 LEDs, 8x8 texels) ingested to a BTF store."""
+    from tasks.ingest import ingest_capture
+    from tasks.simulate import SimulationConfig, simulate_database
+
+    out = tmp_path_factory.mktemp("tiny-btf")
+    config = SimulationConfig(device="tiny", n_materials=1, seed=8, classes=("leather",), n_turntable=1,
+                              texture_size=8)
+    capture = simulate_database(config, out, dask_client).stores[0]
+    ingest_capture(capture, out / "btf.zarr", dask_client)
+    return out / "btf.zarr"
+
+
 _CFA_CODES = {"R": 0, "G": 1, "B": 2}
 
 

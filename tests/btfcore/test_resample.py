@@ -8,6 +8,7 @@ import scipy.sparse as sp
 
 from btfcore.resample import (
     barycentric_weights,
+    lv_outside_hull,
     lv_product,
     outside_hull,
     parabolic_map,
@@ -40,6 +41,18 @@ def _brdf(light, view, exponent=4.0):
     r = light * np.array([-1.0, -1.0, 1.0])                   # mirror of l about +z
     lobe = np.clip(np.einsum("ij,ij->i", r, view), 0.0, None) ** exponent
     return light[:, 2] * (0.5 / np.pi + 0.3 * lobe)
+
+
+def _random_bilinear(rng):
+    """``f(light, view) = a + b.p(l) + c.p(v) + p(l)^T D p(v)`` with random ``b, c, D``: exact under
+    barycentric weights wherever the targets lie inside the source hulls."""
+    b, c, D = rng.normal(size=2), rng.normal(size=2), rng.normal(size=(2, 2))
+
+    def f(light, view):
+        pl, pv = parabolic_map(light), parabolic_map(view)
+        return 0.3 + pl @ b + pv @ c + np.einsum("ni,ij,nj->n", pl, D, pv)
+
+    return f
 
 
 def _rel(est, truth):
@@ -212,13 +225,7 @@ def test_bilinear_functions_are_exact_on_a_turntable_dome(bonn_weights, ubo_lv):
     L, V, W = bonn_weights
     _check_stochastic(W)
     dl, dv = ubo_lv
-    rng = np.random.default_rng(6)
-    b, c, D = rng.normal(size=2), rng.normal(size=2), rng.normal(size=(2, 2))
-
-    def f(light, view):
-        pl, pv = parabolic_map(light), parabolic_map(view)
-        return 0.3 + pl @ b + pv @ c + np.einsum("ni,ij,nj->n", pl, D, pv)
-
+    f = _random_bilinear(np.random.default_rng(6))
     # inside the view hull (the lowest camera ring of 12 azimuths covers theta <= 73 deg) and every
     # view's light hull: exact
     inside = (_theta_deg(dv) < 70) & (_theta_deg(dl) < 70)
@@ -277,3 +284,20 @@ def test_resample_bad_input():
     bad[7, 2] = -0.5
     with pytest.raises(ValueError, match=r"dst_view\[7\]"):
         resample_weights(d, d, d, bad)
+
+
+def test_lv_outside_hull_flags_exactly_the_extrapolated_rows(ubo_lv):
+    dl, dv = ubo_lv
+    f = _random_bilinear(np.random.default_rng(8))
+    # tiny: 10 distinct views over 3 turntable positions, 16 LEDs whose hull misses the low UBO rings
+    L, V, _ = get_device("tiny").lv_directions()
+    W = resample_weights(L, V, dl, dv)
+    view_out, light_out = lv_outside_hull(L, V, dl, dv)
+    np.testing.assert_array_equal(view_out, outside_hull(V, dv))
+    err = np.abs(W @ f(L, V) - f(dl, dv))
+    inside = ~(view_out | light_out)
+    assert 0.1 < inside.mean() < 0.9 and light_out.any() and (light_out & ~view_out).any()
+    np.testing.assert_allclose(err[inside], 0.0, atol=1e-12)      # not flagged: exact
+    assert (err[~inside] > 1e-9).all()                             # flagged: extrapolated
+    # the source's own pairs are never outside
+    assert not np.any(lv_outside_hull(L, V, L, V))

@@ -1,0 +1,41 @@
+"""Prefect flow of ``btf resample``: a BTF store onto a common light x view sampling (DESIGN stage 7)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from prefect import flow, task
+from prefect.cache_policies import NO_CACHE
+
+from tasks.report import write_json
+
+
+# Retrying the stage resumes it: finished target views are skipped, pending ones re-run.
+@task(name="resample-views", retries=1, cache_policy=NO_CACHE)
+def resample_stage(btf: str, out: str, sampling: str, scheduler_address: str, overwrite: bool,
+                   progress: bool) -> dict[str, Any]:
+    from distributed import Client
+
+    from flows.simulate import _progress_bar
+    from tasks.resample import resample_store
+
+    bar, update = _progress_bar("resample", progress)
+    with bar, Client(scheduler_address, set_as_default=False) as client:
+        return resample_store(btf, out, client, sampling=sampling, overwrite=overwrite, progress=update)
+
+
+@flow(name="btf-resample", log_prints=False)
+def resample_flow(btf: str, out: str, sampling: str, scheduler_address: str, overwrite: bool = False,
+                  progress: bool = True) -> dict[str, Any]:
+    """BTF store -> resampled BTF store on ``sampling`` ("ubo2014" or a JSON file).
+
+    Writes ``<out stem>.report.json`` beside the output: rows, how many were
+    extrapolated outside the measured hull, and seconds.
+    """
+    stage = resample_stage(btf, out, sampling, scheduler_address, overwrite, progress)
+    report = {"report": "btf-resample", "btf": btf, "out": out, "sampling": stage["sampling"],
+              "rows": stage["rows"], "outside_hull_rows": stage["outside_hull_rows"],
+              "seconds": stage["seconds"], "stages": {"resample": stage}}
+    write_json(Path(out).with_name(Path(out).stem + ".report.json"), report)
+    return report

@@ -1,0 +1,519 @@
+"""BTF store -> BTF store on a common light x view sampling (DESIGN stage 7).
+
+A BTF store written by ``btf ingest`` ("btf-texture", rows flattened over
+(turntable, camera, light) in the dome's own directions) is resampled to a
+target sampling, the Cartesian product of a light set and a view set: the
+UBO2014 151 x 151 set (:func:`btfcore.resample.ubo2014_directions`) or a
+user's JSON file ``{"light_dirs": [[x, y, z], ...], "view_dirs": [...]}``.
+
+The weights ``W`` ``(n_dst, n_src)`` (:func:`btfcore.resample.resample_weights`,
+at most 9 non-zeros per row) are built once in the driver. The output store is
+written by one Dask task per group of target views: a task reads only the
+source rows its rows of ``W`` use (chunk by chunk, so only the source views it
+needs), computes ``B_dst = W B_src`` for its views with one sparse product,
+writes each view's chunk and then the view's ``written`` marker. The input
+store is never modified. Layout: docs/btf-store.md, "Resampled stores".
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+import scipy.sparse as sp
+import zarr
+
+from btfcore.resample import (
+    lv_outside_hull,
+    lv_product,
+    resample,
+    resample_weights,
+    ubo2014_directions,
+    unique_directions,
+)
+from tasks.ingest import SCHEMA_NAME, SCHEMA_VERSION
+from tasks.store import to_json_attr
+
+#: The built-in target sampling.
+UBO2014 = "ubo2014"
+
+#: Memory a resampling task may plan for: its output views plus the source rows it reads.
+TASK_BYTES = 512 * 2**20
+
+#: Problems listed in one error message about a sampling file.
+MAX_PROBLEMS = 20
+
+_FORMAT_HINT = ('give a JSON object {"light_dirs": [[x, y, z], ...], "view_dirs": [[x, y, z], ...]} of '
+                'directions in the sample frame (z = surface normal, z > 0), or "ubo2014"')
+
+
+@dataclass(frozen=True, eq=False)
+class Sampling:
+    """A target light x view sampling: every light with every view.
+
+    Parameters
+    ----------
+    name : str
+        ``"ubo2014"`` or the file name of a user's sampling.
+    light_dirs : (n_l, 3) ndarray of float64
+        Unit light directions, ``z > 0``.
+    view_dirs : (n_v, 3) ndarray of float64
+        Unit view directions, ``z > 0``.
+    """
+
+    name: str
+    light_dirs: np.ndarray
+    view_dirs: np.ndarray
+
+    @property
+    def n_l(self) -> int:
+        return len(self.light_dirs)
+
+    @property
+    def n_v(self) -> int:
+        return len(self.view_dirs)
+
+    def rows(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Light, view and ``(view, light)`` index of every target row, view-major.
+
+        Returns
+        -------
+        light_dir, view_dir : (n_v * n_l, 3) ndarray of float64
+        lv_index : (n_v * n_l, 2) ndarray of int32
+            Row ``v * n_l + l`` is ``(v, l)``.
+        """
+        light, view = lv_product(self.light_dirs, self.view_dirs)
+        index = np.stack(np.meshgrid(np.arange(self.n_v), np.arange(self.n_l), indexing="ij"), -1)
+        return light, view, index.reshape(-1, 2).astype(np.int32)
+
+    def digest(self) -> str:
+        """Hash of the directions (rounded to 1e-12), which is all a resampling depends on."""
+        h = hashlib.sha256()
+        for dirs in (self.light_dirs, self.view_dirs):
+            h.update(np.ascontiguousarray(np.round(dirs, 12) + 0.0).tobytes())
+        return h.hexdigest()[:16]
+
+
+def _directions(value: Any, name: str, problems: list[str]) -> np.ndarray | None:
+    """Check one direction list of a sampling file; append every problem (with its index)."""
+    if not isinstance(value, list) or not value:
+        problems.append(f"{name} must be a non-empty list of [x, y, z] directions, found "
+                        f"{type(value).__name__ if not isinstance(value, list) else 'an empty list'}")
+        return None
+    rows = np.zeros((len(value), 3))
+    ok = True
+    for i, item in enumerate(value):
+        if not (isinstance(item, list) and len(item) == 3
+                and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in item)):
+            problems.append(f"{name}[{i}] = {json.dumps(item)[:60]} is not a list of three numbers [x, y, z]")
+            ok = False
+            continue
+        v = np.array(item, dtype=np.float64)
+        norm = float(np.linalg.norm(v)) if np.isfinite(v).all() else math.nan
+        if math.isnan(norm):
+            problems.append(f"{name}[{i}] = {item} is not finite (NaN or Infinity)")
+        elif norm < 1e-12:
+            problems.append(f"{name}[{i}] = {item} is the zero vector, not a direction")
+        elif v[2] <= 0.0:
+            problems.append(f"{name}[{i}] = {item} points at or below the horizon (z = {v[2]:g} <= 0); "
+                            "directions must have z > 0 (z is the surface normal)")
+        else:
+            rows[i] = v / norm                                    # non-unit vectors are normalised
+            continue
+        ok = False
+    if not ok:
+        return None
+    unique, inverse = unique_directions(rows)
+    if len(unique) < len(rows):
+        first = np.full(len(unique), -1)
+        for i, u in enumerate(inverse):
+            if first[u] < 0:
+                first[u] = i
+            else:
+                problems.append(f"{name}[{i}] repeats {name}[{first[u]}]; each direction must appear once")
+        return None
+    return rows
+
+
+def load_sampling(sampling: str | os.PathLike) -> Sampling:
+    """The target sampling named by ``--sampling``: ``"ubo2014"`` or a JSON file.
+
+    Parameters
+    ----------
+    sampling : str or path-like
+        ``"ubo2014"`` (151 x 151 directions) or the path of a JSON object
+        ``{"light_dirs": [[x, y, z], ...], "view_dirs": [[x, y, z], ...]}``
+        in the sample frame; the target rows are every light with every view.
+
+    Returns
+    -------
+    Sampling
+        Non-unit vectors are normalised.
+
+    Raises
+    ------
+    FileNotFoundError
+        When the file does not exist.
+    ValueError
+        When the file is not such JSON; every problem is listed with its
+        array and index (zero vectors, NaN/Infinity, ``z <= 0``, repeated
+        directions, entries that are not three numbers).
+    """
+    if str(sampling) == UBO2014:
+        dirs = ubo2014_directions()
+        return Sampling(UBO2014, dirs, dirs.copy())
+    path = Path(sampling)
+    if not path.is_file():
+        raise FileNotFoundError(f"sampling file {path} does not exist; {_FORMAT_HINT}")
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{path}: not a readable JSON sampling file ({exc}); {_FORMAT_HINT}") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: expected a JSON object, found {type(data).__name__}; {_FORMAT_HINT}")
+    problems: list[str] = []
+    dirs = {}
+    for key in ("light_dirs", "view_dirs"):
+        if key not in data:
+            problems.append(f"{key} is missing")
+        else:
+            dirs[key] = _directions(data[key], key, problems)
+    if problems:
+        listed = problems[:MAX_PROBLEMS] + ([f"... and {len(problems) - MAX_PROBLEMS} more"]
+                                            if len(problems) > MAX_PROBLEMS else [])
+        raise ValueError(f"{path}: {len(problems)} problem(s) in the sampling file:\n  " + "\n  ".join(listed)
+                         + f"\nFix them and run again; {_FORMAT_HINT}")
+    return Sampling(path.name, dirs["light_dirs"], dirs["view_dirs"])
+
+
+# --------------------------------------------------------------------------- stores
+
+
+def open_source(path: str | os.PathLike) -> zarr.Group:
+    """Open a finished BTF store for reading, or say what is wrong with it.
+
+    Raises
+    ------
+    FileNotFoundError
+        When nothing is at ``path``.
+    ValueError
+        When it is not a btf-texture store, is unfinished (``complete`` false) or
+        its arrays do not fit together; the message names the path and the fix.
+    """
+    if not Path(path).exists():
+        raise FileNotFoundError(f"{path} does not exist; give a BTF store written by `btf ingest`")
+    try:
+        group = zarr.open_group(str(path), mode="r", zarr_format=3)
+    except (FileNotFoundError, ValueError, TypeError) as exc:
+        raise ValueError(f"{path} is not a Zarr v3 group ({exc}); give a BTF store written by `btf ingest`") from None
+    attrs = dict(group.attrs)
+    if attrs.get("schema") != SCHEMA_NAME:
+        raise ValueError(f"{path} is not a BTF store (schema {attrs.get('schema')!r}, expected "
+                         f"{SCHEMA_NAME!r}); give the output of `btf ingest`")
+    if not attrs.get("complete"):
+        raise ValueError(f"{path} is an unfinished BTF store (attribute complete is false); finish "
+                         f"`btf ingest` into it first (rerun the same `btf ingest CAPTURE --out {path}` to resume)")
+    missing = [name for name in ("btf", "light_dir", "view_dir") if name not in group]
+    if missing:
+        raise ValueError(f"{path}: arrays {missing} are missing; re-run `btf ingest` into a new --out")
+    n = group["btf"].shape[0]
+    for name in ("light_dir", "view_dir"):
+        if group[name].shape != (n, 3):
+            raise ValueError(f"{path}: {name} has shape {group[name].shape}, expected ({n}, 3) to match btf; "
+                             "re-run `btf ingest` into a new --out")
+    if _source_key(attrs) is None:
+        raise ValueError(f"{path}: attribute ingest_hash is missing; give a BTF store written by `btf ingest`")
+    return group
+
+
+def _source_key(attrs: dict) -> str | None:
+    """What identifies a source store's content: its ingest hash (or, resampled, its resample hash)."""
+    return attrs.get("ingest_hash") or attrs.get("resample_hash")
+
+
+def resample_hash(source_attrs: dict, sampling: Sampling) -> str:
+    """What a resampled store depends on: the source's content hash, the target directions, the schema."""
+    payload = {"source": _source_key(source_attrs), "sampling": sampling.digest(),
+               "schema": f"{SCHEMA_NAME}/{SCHEMA_VERSION}", "method": "barycentric-parabolic-delaunay"}
+    return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def _existing(path: str | os.PathLike, key: str, overwrite: bool) -> zarr.Group | None:
+    """The store at ``path`` if it is a resampling with hash ``key``; None if there is none (or
+    ``overwrite``); FileExistsError for anything else."""
+    if overwrite or not Path(path).exists() or (Path(path).is_dir() and not any(Path(path).iterdir())):
+        return None
+    try:
+        group = zarr.open_group(str(path), mode="r+", zarr_format=3)
+        attrs = dict(group.attrs)
+    except (OSError, ValueError, TypeError):
+        attrs, group = {}, None
+    if group is not None and attrs.get("resample_hash") == key:
+        return group
+    if group is None:
+        what = "something that is not a Zarr store"
+    elif "resample_hash" not in attrs:
+        what = f"a Zarr store that is not a resampled BTF store (schema {attrs.get('schema')!r})"
+    else:
+        state = "a complete" if attrs.get("complete") else "an unfinished"
+        what = (f"{state} resampled BTF store of another source or sampling (resample_hash "
+                f"{attrs['resample_hash']!r}, this run {key!r})")
+    raise FileExistsError(f"{path} holds {what}; choose another --out or pass --overwrite")
+
+
+def _whole(group: zarr.Group, name: str, data: np.ndarray) -> None:
+    group.create_array(name, shape=data.shape, dtype=data.dtype, chunks=data.shape, compressors=None)[...] = data
+
+
+def create_resampled_store(path: str | os.PathLike, source_path: str | os.PathLike, source: zarr.Group,
+                           sampling: Sampling, key: str, outside_view: np.ndarray,
+                           outside_light: np.ndarray) -> zarr.Group:
+    """Create (replacing whatever is at ``path``) an empty resampled BTF store.
+
+    Parameters
+    ----------
+    path : path-like
+        The new store.
+    source_path, source : path-like, zarr.Group
+        The finished source store (:func:`open_source`).
+    sampling : Sampling
+        Target directions.
+    key : str
+        :func:`resample_hash` of source and sampling.
+    outside_view, outside_light : (n_v * n_l,) ndarray of bool
+        Rows whose target view / light lies outside the measured hull
+        (:func:`btfcore.resample.lv_outside_hull`).
+
+    Returns
+    -------
+    zarr.Group
+        ``btf`` (zeros), directions, ``lv_index``, target sets, ``outside_hull``,
+        ``written`` (zeros) and the attributes, ``complete`` false.
+    """
+    n_v, n_l = sampling.n_v, sampling.n_l
+    src_btf = source["btf"]
+    h, w = src_btf.shape[1:3]
+    light_dir, view_dir, lv_index = sampling.rows()
+    outside = outside_view | outside_light
+    group = zarr.open_group(str(path), mode="w", zarr_format=3)
+    group.create_array("btf", shape=(n_v * n_l, h, w, 3), chunks=(n_l, h, w, 3), dtype="float32",
+                       fill_value=0.0, compressors=None, dimension_names=["lv", "tex_row", "tex_col", "channel"])
+    for name, data in (("light_dir", light_dir), ("view_dir", view_dir), ("lv_index", lv_index),
+                       ("target_light_dirs", sampling.light_dirs), ("target_view_dirs", sampling.view_dirs),
+                       ("outside_hull", outside)):
+        _whole(group, name, data)
+    group.create_array("written", shape=(n_v,), chunks=(1,), dtype="uint8", fill_value=0, compressors=None)
+    attrs = dict(source.attrs)
+    resampled_from = {"path": str(Path(source_path).resolve()), "ingest_hash": attrs.get("ingest_hash")}
+    if attrs.get("resample_hash"):
+        resampled_from["resample_hash"] = attrs["resample_hash"]
+    group.attrs.put(to_json_attr({
+        "schema": SCHEMA_NAME, "schema_version": SCHEMA_VERSION, "units": attrs.get("units"),
+        "lv_order": ["view", "light"], "texture_shape": [h, w], "views_lights": [n_v, n_l],
+        "sampling": sampling.name, "resampled_from": resampled_from, "resample_hash": key,
+        "method": "barycentric interpolation on Delaunay triangulations in the parabolic map, "
+                  "per-view light triangulation (btfcore.resample.resample_weights); outside the "
+                  "measured hull the nearest hull point's weights",
+        "outside_hull": {"rows": int(outside.sum()), "view": int(outside_view.sum()),
+                         "light": int(outside_light.sum())},
+        "complete": False,
+    }))
+    return group
+
+
+# --------------------------------------------------------------------------- work
+
+
+def _raise_nonfinite(buf: np.ndarray, rows: np.ndarray, source_path: str) -> None:
+    bad = ~np.isfinite(buf)
+    if bad.any():
+        i, y, x, ch = (int(v) for v in np.unravel_index(int(np.argmax(bad)), buf.shape))
+        raise ValueError(f"{source_path}: btf[{int(rows[i])}, {y}, {x}, {ch}] = {float(buf[i, y, x, ch])!r}; "
+                         "the source holds NaN/Inf and cannot be resampled; re-run `btf ingest` into a new --out")
+
+
+def resample_views(source_path: str, out_path: str, views: Sequence[int], weights: sp.csr_matrix) -> dict[str, Any]:
+    """Resample a group of target views and write them (one Dask task).
+
+    Parameters
+    ----------
+    source_path, out_path : str
+        Source BTF store and the resampled store being written.
+    views : sequence of int
+        Target view indices; each owns output rows ``v * n_l ... (v + 1) * n_l``,
+        exactly one chunk of ``btf``.
+    weights : (len(views) * n_l, n_src) scipy.sparse.csr_matrix
+        The rows of ``W`` of these views, in order.
+
+    Returns
+    -------
+    dict
+        ``views`` written and ``source_chunks`` read.
+
+    Notes
+    -----
+    Only the source rows with a non-zero weight are read, chunk by chunk
+    (a chunk is one source view), into one buffer; ``W`` restricted to those
+    columns keeps each row's column order, so the product is the same as the
+    in-memory ``resample(B, W)`` of these rows. Each view's marker is set
+    after all the group's data is written.
+    """
+    src = zarr.open_group(source_path, mode="r", zarr_format=3)["btf"]
+    out = zarr.open_group(out_path, mode="r+", zarr_format=3)
+    n_l = weights.shape[0] // len(views)
+    needed = np.unique(weights.indices)                           # sorted source rows
+    step = src.chunks[0]
+    blocks = needed // step
+    buf = np.empty((len(needed),) + tuple(src.shape[1:]), dtype=np.float32)
+    for k in np.unique(blocks):
+        lo, hi = np.searchsorted(blocks, [k, k + 1])
+        buf[lo:hi] = src[k * step:(k + 1) * step][needed[lo:hi] - k * step]   # whole chunk read
+    W = sp.csr_matrix((weights.data, np.searchsorted(needed, weights.indices), weights.indptr),
+                      shape=(weights.shape[0], len(needed)))      # columns renumbered, order kept
+    try:
+        dst = resample(buf, W)                                    # eq. B_dst = W B_src
+    except ValueError:
+        _raise_nonfinite(buf, needed, source_path)
+        raise
+    for i, v in enumerate(views):
+        out["btf"][v * n_l:(v + 1) * n_l] = dst[i * n_l:(i + 1) * n_l]      # exactly one chunk
+    for v in views:
+        out["written"][v] = 1                                     # markers after the data
+    return {"views": [int(v) for v in views], "source_chunks": int(len(np.unique(blocks)))}
+
+
+def _view_groups(W: sp.csr_matrix, views: Sequence[int], n_l: int, row_bytes: int, max_views: int,
+                 budget: int = TASK_BYTES) -> list[list[int]]:
+    """Consecutive target views per task: at most ``max_views``, and output plus source rows read
+    within ``budget`` bytes (neighbouring views share most of their source rows)."""
+    groups: list[list[int]] = []
+    group: list[int] = []
+    union = np.zeros(0, dtype=np.int64)
+    for v in views:
+        rows = np.unique(W.indices[W.indptr[v * n_l]:W.indptr[(v + 1) * n_l]])
+        grown = np.union1d(union, rows)
+        if group and (len(group) >= max_views or (len(grown) + (len(group) + 1) * n_l) * row_bytes > budget):
+            groups.append(group)
+            group, grown = [], rows
+        group.append(int(v))
+        union = grown
+    return groups + ([group] if group else [])
+
+
+def check_inputs(source_path: str | os.PathLike, out_path: str | os.PathLike,
+                 sampling: str | os.PathLike | Sampling, *,
+                 overwrite: bool = False) -> tuple[zarr.Group, Sampling, str, zarr.Group | None]:
+    """Check a resampling's inputs before any work: the source store, the sampling and ``--out``.
+
+    Returns
+    -------
+    source : zarr.Group
+        The finished source store.
+    sampling : Sampling
+    key : str
+        :func:`resample_hash` of the two.
+    existing : zarr.Group or None
+        The store at ``out_path`` when it is this resampling (finished or not).
+
+    Raises
+    ------
+    FileNotFoundError, ValueError
+        As :func:`open_source` and :func:`load_sampling`; ValueError when
+        ``out_path`` is the source itself.
+    FileExistsError
+        Something else is at ``out_path`` and not ``overwrite``.
+    """
+    source = open_source(source_path)
+    if Path(out_path).resolve() == Path(source_path).resolve():
+        raise ValueError(f"--out {out_path} is the source store; resampling never modifies its input, "
+                         "choose another --out")
+    sampling = sampling if isinstance(sampling, Sampling) else load_sampling(sampling)
+    key = resample_hash(dict(source.attrs), sampling)
+    return source, sampling, key, _existing(out_path, key, overwrite)
+
+
+def resample_store(source_path: str | os.PathLike, out_path: str | os.PathLike, client: Any, *,
+                   sampling: str | os.PathLike | Sampling = UBO2014, overwrite: bool = False,
+                   progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
+    """Resample a finished BTF store to a common sampling on a Dask cluster; resumes unfinished runs.
+
+    Parameters
+    ----------
+    source_path : path-like
+        BTF store from ``btf ingest`` (``complete`` true); never modified.
+    out_path : path-like
+        The resampled store to write (docs/btf-store.md, "Resampled stores").
+    client : distributed.Client
+    sampling : {"ubo2014"}, path-like or Sampling
+        Target sampling: UBO2014 151 x 151, or a JSON file (:func:`load_sampling`).
+    overwrite : bool
+        Replace a store of another source or sampling at ``out_path``.
+    progress : callable, optional
+        ``progress(views_done, views_total)``.
+
+    Returns
+    -------
+    dict
+        ``rows``, ``views``, ``lights``, ``views_processed``, ``views_skipped``,
+        ``tasks``, ``source_chunks_read``, ``outside_hull_rows`` (and by
+        kind), ``weights_seconds``, ``seconds``.
+
+    Raises
+    ------
+    FileNotFoundError, ValueError, FileExistsError
+        Bad source store, sampling or ``out_path`` (:func:`check_inputs`).
+    """
+    from distributed import as_completed
+
+    start = time.perf_counter()
+    source, sampling, key, group = check_inputs(source_path, out_path, sampling, overwrite=overwrite)
+    n_v, n_l = sampling.n_v, sampling.n_l
+    summary = {"rows": n_v * n_l, "views": n_v, "lights": n_l, "sampling": sampling.name}
+    if group is not None and group.attrs.get("complete"):
+        return {**summary, **_outside_counts(group), "views_processed": 0, "views_skipped": n_v, "tasks": 0,
+                "source_chunks_read": 0, "weights_seconds": 0.0, "seconds": round(time.perf_counter() - start, 3)}
+    light_dir, view_dir, _ = sampling.rows()
+    src_light, src_view = source["light_dir"][...], source["view_dir"][...]
+    try:
+        W = resample_weights(src_light, src_view, light_dir, view_dir)
+        outside_view, outside_light = lv_outside_hull(src_light, src_view, light_dir, view_dir)
+    except ValueError as exc:       # src_light/src_view are the store's light_dir/view_dir
+        raise ValueError(f"{source_path}: {exc} (src_light/src_view: its light_dir/view_dir arrays); "
+                         "re-run `btf ingest` into a new --out") from None
+    weights_seconds = time.perf_counter() - start
+    if group is None:
+        group = create_resampled_store(out_path, source_path, source, sampling, key, outside_view, outside_light)
+    written = group["written"][...]
+    pending = [int(v) for v in np.flatnonzero(written == 0)]
+    row_bytes = int(np.prod(source["btf"].shape[1:])) * 4
+    slots = max(1, sum(client.nthreads().values()))
+    groups = _view_groups(W, pending, n_l, row_bytes, max_views=max(1, math.ceil(len(pending) / (4 * slots))))
+    futures = [client.submit(resample_views, str(source_path), str(out_path), views,
+                             W[(np.asarray(views)[:, None] * n_l + np.arange(n_l)).ravel()], pure=False)
+               for views in groups]
+    done, chunks_read = 0, 0
+    for future in as_completed(futures):
+        result = future.result()
+        done += len(result["views"])
+        chunks_read += result["source_chunks"]
+        if progress is not None:
+            progress(done, len(pending))
+    if not group["written"][...].all():
+        raise RuntimeError(f"{out_path}: some views were not written; re-run to resume")
+    group.attrs["complete"] = True
+    return {**summary, **_outside_counts(group), "views_processed": len(pending),
+            "views_skipped": n_v - len(pending), "tasks": len(groups), "source_chunks_read": chunks_read,
+            "weights_seconds": round(weights_seconds, 3), "seconds": round(time.perf_counter() - start, 3)}
+
+
+def _outside_counts(group: zarr.Group) -> dict[str, int]:
+    counts = group.attrs["outside_hull"]
+    return {"outside_hull_rows": counts["rows"], "outside_view_hull_rows": counts["view"],
+            "outside_light_hull_rows": counts["light"]}
