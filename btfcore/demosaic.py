@@ -224,8 +224,9 @@ def demosaicing_CFA_Bayer_bilinear(cfa: np.ndarray, pattern: str = "RGGB", *, bo
         Border extension (module docstring): ``'reflect'`` reproduces
         colour-demosaicing everywhere, ``'mirror'`` keeps the Bayer parity.
     out : (..., H, W, 3) ndarray, optional
-        C-contiguous buffer of the result's dtype to write into (reuse it
-        across calls: first-touch of new memory is slow, DESIGN §5).
+        Buffer of the result's dtype to write into, C-contiguous or a strided view
+        that reshapes without a copy (e.g. three channels of a wider stack); reuse it
+        across calls: first-touch of new memory is slow, DESIGN §5.
 
     Returns
     -------
@@ -299,8 +300,9 @@ def demosaicing_CFA_Bayer_Malvar2004(cfa: np.ndarray, pattern: str = "RGGB", *, 
         Border extension (module docstring): ``'reflect'`` reproduces
         colour-demosaicing everywhere, ``'mirror'`` keeps the Bayer parity.
     out : (..., H, W, 3) ndarray, optional
-        C-contiguous buffer of the result's dtype to write into (reuse it
-        across calls: first-touch of new memory is slow, DESIGN §5).
+        Buffer of the result's dtype to write into, C-contiguous or a strided view
+        that reshapes without a copy (e.g. three channels of a wider stack); reuse it
+        across calls: first-touch of new memory is slow, DESIGN §5.
 
     Returns
     -------

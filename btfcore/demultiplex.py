@@ -138,8 +138,9 @@ def demultiplex_operator(patterns: np.ndarray, *, method: str = "lstsq") -> np.n
         Binary illumination patterns, row ``i`` = pattern ``i``, column
         ``j`` = LED ``j`` (e.g. :func:`btfcore.hadamard.multiplexing_patterns`).
     method : {'lstsq', 'pinv'}
-        ``'lstsq'`` uses the closed form when ``patterns`` are (the leading
-        columns of) an S-matrix of order ``n_illum`` and the SVD
+        ``'lstsq'`` uses the closed form when ``patterns`` are single-LED
+        (a permutation matrix, whose inverse is its transpose) or (the
+        leading columns of) an S-matrix of order ``n_illum``, and the SVD
         pseudo-inverse otherwise; ``'pinv'`` always uses the SVD.
 
     Returns
@@ -174,6 +175,9 @@ def demultiplex_operator(patterns: np.ndarray, *, method: str = "lstsq") -> np.n
             f"patterns have rank at most {n} (n_illum = {n}) for {k} LEDs: need at least as many "
             f"linearly independent patterns as LEDs"
         )
+    if method == "lstsq" and n == k and np.array_equal(p.sum(axis=0), np.ones(k)) \
+            and np.array_equal(p.sum(axis=1), np.ones(n)):
+        return p.T.copy()                                         # single-LED patterns: M^-1 = M^T
     if method == "lstsq" and _s_matrix_gram_ok(p):
         if k == n:
             return s_matrix_inverse(p)

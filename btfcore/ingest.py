@@ -25,7 +25,10 @@ import numpy as np
 from btfcore.demosaic import demosaic
 from btfcore.demultiplex import demultiplex_operator
 from btfcore.hdr import dark_per_exposure, merge_linear
-from btfcore.rectify import apply_rectification, rectification_matrix
+from btfcore.rectify import apply_rectification, rectification_matrix, support_window
+
+#: Radius of the demosaicing filters (Malvar 2004: 5 x 5): pixels read around the rectification's window.
+DEMOSAIC_RADIUS = 2
 
 
 @dataclass(frozen=True)
@@ -63,35 +66,46 @@ def process_view(frames: np.ndarray, exposure_time: np.ndarray, patterns: np.nda
     textures : (n_leds, h, w, 3) ndarray of float32
         Linear radiance in DN/s per LED (before radiometric correction).
     valid_fraction : (n_illum,) ndarray of float64
-        Fraction of raw pixels with at least one usable exposure per pattern.
+        Fraction of the raw pixels read for the texture (the window of
+        :func:`btfcore.rectify.support_window`) with at least one usable
+        exposure, per pattern.
     """
     n_illum, n_exp, rows, cols = frames.shape
-    A = rectification_matrix(homography, (rows, cols), texture_shape, sample_size_m, method=settings.rectify)
+    A_full = rectification_matrix(homography, (rows, cols), texture_shape, sample_size_m, method=settings.rectify)
+    # only the window the operator reads (plus the demosaicing filter's radius) is merged and demosaicked
+    row_win, col_win, A = support_window(A_full, (rows, cols), margin=DEMOSAIC_RADIUS, align=2)
+    window = frames[:, :, row_win, col_win]
+    win_shape = window.shape[2:]
     rectified = np.empty((n_illum, *texture_shape, 3), dtype=np.float32)
     valid_fraction = np.empty(n_illum)
     dark_line = None
     if dark_frames is not None and dark_exposure_time is not None:
         # the dark model is linear in time: fit it once per view, evaluate per bracket
-        d1, d2 = dark_per_exposure(dark_frames, dark_exposure_time, [1.0, 2.0], black_level=black_level)
-        dark_line = (2.0 * d1 - d2, d2 - d1)                               # offset (DN), rate (DN/s)
+        d1, d2 = dark_per_exposure(dark_frames[:, row_win, col_win], dark_exposure_time, [1.0, 2.0],
+                                   black_level=black_level)
+        dark_line = ((2.0 * d1 - d2).astype(np.float32), (d2 - d1).astype(np.float32))   # offset DN, rate DN/s
     block = 32  # illuminations rectified by one sparse product: (rows, cols, 3 * block) float32
-    stack = np.empty((rows, cols, 3 * min(block, n_illum)), dtype=np.float32)
+    stack = np.empty((*win_shape, 3 * min(block, n_illum)), dtype=np.float32)
+    dark = None if dark_line is None else np.empty((n_exp, *win_shape), dtype=np.float32)   # reused buffers
     for first in range(0, n_illum, block):
         members = range(first, min(first + block, n_illum))
         for k, i in enumerate(members):
-            dark = None
-            if dark_line is not None:
-                dark = dark_line[0] + dark_line[1] * exposure_time[i][:, None, None]
-            hdr, valid = merge_linear(frames[i], exposure_time[i], black_level=black_level,
+            if dark is not None:
+                for k_exp, t_k in enumerate(exposure_time[i]):
+                    np.multiply(dark_line[1], np.float32(t_k), out=dark[k_exp])
+                    dark[k_exp] += dark_line[0]                                     # dark = offset + rate t
+            hdr, valid = merge_linear(window[i], exposure_time[i], black_level=black_level,
                                       white_level=white_level, gain_e_per_dn=gain_e_per_dn,
                                       read_noise_e=read_noise_e, dark=dark,
                                       saturation_margin=settings.saturation_margin)
             valid_fraction[i] = float(valid.mean())
-            stack[:, :, 3 * k:3 * k + 3] = demosaic(hdr, bayer_pattern, method=settings.demosaic)
+            demosaic(hdr, bayer_pattern, method=settings.demosaic, out=stack[:, :, 3 * k:3 * k + 3])
         n = len(members)
         out = apply_rectification(A, stack[:, :, :3 * n], texture_shape)           # (h, w, 3n)
         rectified[first:first + n] = np.moveaxis(out.reshape(*texture_shape, n, 3), 2, 0)
     P = demultiplex_operator(patterns).astype(np.float32)           # (n_leds, n_illum)
+    if P.shape[0] == n_illum and np.array_equal(P, np.eye(n_illum, dtype=np.float32)):
+        return rectified, valid_fraction                            # single-LED capture in LED order
     textures = (P @ rectified.reshape(n_illum, -1)).reshape(P.shape[0], *texture_shape, 3)
     return textures, valid_fraction
 

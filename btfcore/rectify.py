@@ -61,6 +61,7 @@ __all__ = [
     "rectification_matrix",
     "rectify",
     "registration_error",
+    "support_window",
     "texel_to_sample",
     "texture_homography",
 ]
@@ -542,6 +543,54 @@ def rectification_matrix(H_sample_to_image: np.ndarray, image_shape: tuple[int, 
         if s_i < 1 or s_j < 1:
             raise ValueError(f"supersample must be >= 1, got {supersample}")
     return _supersample_matrix(G, (rows, cols), (h, w), s_i, s_j, b)
+
+
+def support_window(A: sparse.spmatrix, image_shape: tuple[int, int], *, margin: int = 0,
+                   align: int = 1) -> tuple[slice, slice, sparse.csr_matrix]:
+    """The image window a rectification operator reads, and the operator on that window.
+
+    Parameters
+    ----------
+    A : (h * w, rows * cols) sparse matrix
+        From :func:`rectification_matrix`.
+    image_shape : (2,) tuple of int
+        ``(rows, cols)`` of the image.
+    margin : int
+        Pixels added on every side (clipped to the image): the radius of a
+        filter applied before rectification, e.g. 2 for Malvar demosaicing,
+        so that the filter sees the same neighbourhood as on the whole image.
+    align : int
+        The window starts at a multiple of ``align`` (2 keeps a Bayer
+        mosaic's layout).
+
+    Returns
+    -------
+    row_window, col_window : slice
+        ``image[row_window, col_window]`` holds every pixel ``A`` reads.
+    A_window : (h * w, n_rows * n_cols) scipy.sparse.csr_matrix
+        ``A @ image.reshape(-1, C) == A_window @ image[row_window, col_window].reshape(-1, C)``.
+
+    Notes
+    -----
+    A camera frame is larger than the sample's footprint (on a grazing view
+    by several times): processing only the window is what makes the per-view
+    chain of :mod:`btfcore.ingest` cheap, with results equal to processing
+    the whole frame.
+    """
+    rows, cols = (int(v) for v in image_shape)
+    if A.shape[1] != rows * cols:
+        raise ValueError(f"operator has {A.shape[1]} columns, the image {rows} x {cols} = {rows * cols} pixels")
+    coo = sparse.coo_matrix(A)
+    if coo.nnz == 0:
+        raise ValueError("the rectification operator reads no pixel: the sample is not in the image")
+    r, c = np.divmod(coo.col, cols)
+    r0 = max(0, int(r.min()) - margin) // align * align
+    c0 = max(0, int(c.min()) - margin) // align * align
+    r1, c1 = min(rows, int(r.max()) + 1 + margin), min(cols, int(c.max()) + 1 + margin)
+    n_cols = c1 - c0
+    A_window = sparse.csr_matrix((coo.data, (coo.row, (r - r0) * n_cols + (c - c0))),
+                                 shape=(A.shape[0], (r1 - r0) * n_cols))
+    return slice(r0, r1), slice(c0, c1), A_window
 
 
 def _as_image(image: np.ndarray) -> tuple[np.ndarray, bool]:

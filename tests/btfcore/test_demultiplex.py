@@ -92,6 +92,17 @@ def test_general_full_rank_patterns_and_integer_input():
     np.testing.assert_allclose(out, counts, atol=1e-9)
 
 
+def test_single_led_patterns_in_any_order_are_inverted_by_their_transpose():
+    rng = np.random.default_rng(5)
+    M = np.eye(9)[rng.permutation(9)]
+    P = demultiplex_operator(M)
+    np.testing.assert_array_equal(P, M.T)
+    np.testing.assert_array_equal(P, demultiplex_operator(M, method="pinv").round(12))
+    single = rng.uniform(0, 1, (9, 4, 3))
+    np.testing.assert_allclose(demultiplex(M @ single.reshape(9, -1), M).reshape(single.shape), single,
+                               rtol=1e-12)
+
+
 def test_one_matrix_product_per_chunk_matches_per_pixel_lstsq():
     M = s_matrix(23)[:, :20]
     rng = np.random.default_rng(5)

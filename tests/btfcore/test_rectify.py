@@ -22,6 +22,7 @@ from btfcore.rectify import (
     rectification_matrix,
     rectify,
     registration_error,
+    support_window,
     texel_to_sample,
     texture_homography,
 )
@@ -248,6 +249,28 @@ def test_many_channels_and_the_reusable_operator():
     wide = rectify(stack, H, d.texture_shape, d.sample_size_m, method="bilinear")   # > 4 channels through OpenCV
     np.testing.assert_allclose(wide[..., 5], rectify(stack[..., 5], H, d.texture_shape, d.sample_size_m,
                                                      method="bilinear"), rtol=1e-6)
+
+
+@pytest.mark.parametrize("method", RECTIFY_METHODS)
+@pytest.mark.parametrize("c", [0, 3])
+def test_support_window_holds_every_pixel_the_operator_reads(method, c):
+    d = get_device("bonn-dome2")
+    A = rectification_matrix(d.homography(0, c), d.roi_shape, d.texture_shape, d.sample_size_m, method=method)
+    rows, cols, Aw = support_window(A, d.roi_shape, margin=2, align=2)
+    assert rows.start % 2 == 0 and cols.start % 2 == 0                  # Bayer layout kept
+    n = (rows.stop - rows.start) * (cols.stop - cols.start)
+    assert Aw.shape == (A.shape[0], n) and Aw.nnz == A.nnz
+    assert n < 0.6 * d.roi_shape[0] * d.roi_shape[1]                   # the frame is larger than the sample
+    image = np.random.default_rng(c).uniform(0, 1, d.roi_shape + (3,))
+    np.testing.assert_array_equal(apply_rectification(Aw, image[rows, cols], d.texture_shape),
+                                  apply_rectification(A, image, d.texture_shape))
+    # the margin is really there: pixels of the window that the operator does not read
+    used = np.zeros(n, bool)
+    used[Aw.indices] = True
+    used = used.reshape(rows.stop - rows.start, -1)
+    assert not used[:2].any() and not used[:, :2].any()
+    with pytest.raises(ValueError, match="columns"):
+        support_window(A, (10, 10))
 
 
 def test_automatic_supersampling_follows_the_footprint():

@@ -41,7 +41,11 @@ def test_chunked_ingest_equals_in_memory_and_resumes(capture, tmp_path, dask_cli
     assert group.attrs["complete"] and group["btf"].shape == (4 * 16, 32, 32, 3)
     btf = group["btf"][...]
     for c in range(4):
-        np.testing.assert_array_equal(btf[c * 16:(c + 1) * 16], _in_memory(capture, 0, c))
+        # equal up to float32 rounding: the demultiplexing GEMM sums in an order that depends on
+        # the BLAS thread count, which is 1 on the workers and the machine's cores here
+        # (demultiplexing cancels large terms, so the tolerance is relative to the largest value)
+        expected = _in_memory(capture, 0, c)
+        np.testing.assert_allclose(btf[c * 16:(c + 1) * 16], expected, rtol=0, atol=1e-6 * np.abs(expected).max())
     # forget two views as a killed run would, resume: only those are recomputed, bit-identically
     rw = zarr.open_group(str(out), mode="r+")
     rw["written"][0, 1:3] = 0
