@@ -10,10 +10,11 @@ The chain for one (turntable, camera) view, thesis §1.1.3:
    operator per view (:func:`btfcore.rectify.rectification_matrix`);
 4. demultiplexing of the illumination patterns to single LEDs
    (:func:`btfcore.demultiplex.demultiplex`; the identity for single-LED
-   captures).
-
-Radiometric correction (per-LED gains from a white standard) acts on the
-result of all views and lives in :mod:`btfcore.radiometric`.
+   captures);
+5. radiometric correction, when a calibration is given: division by each
+   LED's RGB gain measured on a white standard
+   (:func:`btfcore.radiometric.apply_led_calibration`) and the camera's
+   colour matrix (:func:`btfcore.radiometric.apply_colour_matrix`).
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ import numpy as np
 from btfcore.demosaic import demosaic
 from btfcore.demultiplex import demultiplex_operator
 from btfcore.hdr import dark_per_exposure, merge_linear
+from btfcore.radiometric import apply_colour_matrix, apply_led_calibration
 from btfcore.rectify import apply_rectification, rectification_matrix, support_window
 
 #: Radius of the demosaicing filters (Malvar 2004: 5 x 5): pixels read around the rectification's window.
@@ -45,6 +47,7 @@ def process_view(frames: np.ndarray, exposure_time: np.ndarray, patterns: np.nda
                  texture_shape: tuple[int, int], sample_size_m: float,
                  dark_frames: np.ndarray | None = None, dark_exposure_time: np.ndarray | None = None,
                  gain_e_per_dn: float | None = None, read_noise_e: float | None = None,
+                 led_gain: np.ndarray | None = None, colour_matrix: np.ndarray | None = None,
                  settings: IngestSettings = IngestSettings()) -> tuple[np.ndarray, np.ndarray]:
     """Raw brackets of one view to demultiplexed, rectified linear RGB textures.
 
@@ -60,11 +63,19 @@ def process_view(frames: np.ndarray, exposure_time: np.ndarray, patterns: np.nda
         Sample-plane metres -> raw pixel ``(col, row, 1)``.
     dark_frames : (n_dark, rows, cols) ndarray, optional
         The camera's dark frames (DN, black level included) at ``dark_exposure_time``.
+    led_gain : (n_leds, 3) ndarray, optional
+        Each LED's RGB gain from a white standard
+        (:func:`btfcore.radiometric.led_calibration`, DN/s per unit
+        irradiance-weighted reflectance); the textures are divided by it.
+    colour_matrix : (3, 3) or (3, 4) ndarray, optional
+        Camera RGB -> target RGB, applied after the LED gains.
 
     Returns
     -------
     textures : (n_leds, h, w, 3) ndarray of float32
-        Linear radiance in DN/s per LED (before radiometric correction).
+        Linear radiance per LED: DN/s without ``led_gain``; with it, radiance
+        relative to a unit-irradiance white light (a white Lambertian sample
+        of albedo ``a`` reads ``a cos(theta_i) / pi``), the ground truth's unit.
     valid_fraction : (n_illum,) ndarray of float64
         Fraction of the raw pixels read for the texture (the window of
         :func:`btfcore.rectify.support_window`) with at least one usable
@@ -105,8 +116,13 @@ def process_view(frames: np.ndarray, exposure_time: np.ndarray, patterns: np.nda
         rectified[first:first + n] = np.moveaxis(out.reshape(*texture_shape, n, 3), 2, 0)
     P = demultiplex_operator(patterns).astype(np.float32)           # (n_leds, n_illum)
     if P.shape[0] == n_illum and np.array_equal(P, np.eye(n_illum, dtype=np.float32)):
-        return rectified, valid_fraction                            # single-LED capture in LED order
-    textures = (P @ rectified.reshape(n_illum, -1)).reshape(P.shape[0], *texture_shape, 3)
+        textures = rectified                                        # single-LED capture in LED order
+    else:
+        textures = (P @ rectified.reshape(n_illum, -1)).reshape(P.shape[0], *texture_shape, 3)
+    if led_gain is not None:
+        apply_led_calibration(textures, led_gain, out=textures)
+    if colour_matrix is not None:
+        textures = apply_colour_matrix(textures, colour_matrix)
     return textures, valid_fraction
 
 

@@ -40,6 +40,7 @@ __all__ = [
     "MIN_COS_THETA",
     "apply_colour_matrix",
     "apply_led_calibration",
+    "as_colour_matrix",
     "fit_colour_matrix",
     "led_calibration",
 ]
@@ -206,7 +207,22 @@ def apply_led_calibration(
     return np.multiply(x, inv, out=out, dtype=dtype)                # eq. B = W / g_l
 
 
-def _as_matrix(matrix) -> np.ndarray:
+def as_colour_matrix(matrix: np.ndarray) -> np.ndarray:
+    """A colour matrix checked for shape (3, 3) or (3, 4) and finiteness, as float64.
+
+    Parameters
+    ----------
+    matrix : (3, 3) or (3, 4) array_like
+
+    Returns
+    -------
+    matrix : (3, 3) or (3, 4) ndarray of float64
+
+    Raises
+    ------
+    ValueError
+        On another shape or NaN/Inf (names the index).
+    """
     m = np.asarray(matrix, dtype=np.float64)
     if m.shape not in ((3, 3), (3, 4)):
         raise ValueError(f"colour matrix must be (3, 3) or (3, 4) (affine), got shape {m.shape}")
@@ -238,7 +254,7 @@ def apply_colour_matrix(rgb: np.ndarray, matrix: np.ndarray) -> np.ndarray:
     x = np.asarray(rgb)
     if x.ndim < 1 or x.shape[-1] != 3:
         raise ValueError(f"rgb must have 3 channels on its last axis, got shape {x.shape}")
-    m = _as_matrix(matrix)
+    m = as_colour_matrix(matrix)
     dtype = _float_dtype(x)
     out = x.astype(dtype, copy=False) @ m[:, :3].T.astype(dtype)    # eq. rgb' = M rgb
     if m.shape[1] == 4:

@@ -75,22 +75,33 @@ def simulate_flow(config: SimulationConfig, out_dir: str, scheduler_address: str
 @flow(name="btf-demo", log_prints=False)
 def demo_flow(out_dir: str, scheduler_address: str, seed: int = 0, n_materials: int = 6,
               progress: bool = True) -> dict[str, Any]:
-    """The main job on the embedded default: simulate a small database, ingest every
-    capture back to a BTF, and report both against the ground truth.
+    """The main job on the embedded default: simulate a small database (single-LED and
+    S-matrix multiplexed) and a white standard, calibrate the LEDs on the white standard,
+    ingest every capture back to a calibrated BTF, and report them against the ground truth.
 
     Later stages (models, acquisition) join this flow as they land.
     """
-    from flows.ingest import ingest_database_stage
+    from flows.ingest import calibration_stage, ingest_database_stage
 
     start = time.perf_counter()
+    out = Path(out_dir)
     config = SimulationConfig(device="tiny", n_materials=n_materials, seed=seed)
-    database = str(Path(out_dir) / "database")
-    stage = simulate_stage(config, database, scheduler_address, False, progress)
-    ingest = ingest_database_stage(stage["stores"], str(Path(out_dir) / "btf"), scheduler_address, progress)
-    run = {"command": "demo", "config": config.to_json(), "out_dir": str(Path(out_dir).resolve()),
+    stage = simulate_stage(config, str(out / "database"), scheduler_address, False, progress)
+    white_config = SimulationConfig(device="tiny", n_materials=1, seed=seed, classes=("white-standard",))
+    white = simulate_stage(white_config, str(out / "white-standard"), scheduler_address, False, progress)
+    ingest_database_stage(white["stores"], str(out / "btf-white"), scheduler_address, progress)
+    calibration = calibration_stage(str(out / "btf-white" / Path(white["stores"][0]).name), 0.99, None)
+    ingest = ingest_database_stage(stage["stores"], str(out / "btf"), scheduler_address, progress, calibration)
+    mux_config = SimulationConfig(device="tiny", n_materials=n_materials, seed=seed, illumination="multiplexed")
+    mux = simulate_stage(mux_config, str(out / "database-multiplexed"), scheduler_address, False, progress)
+    ingest_mux = ingest_database_stage(mux["stores"], str(out / "btf-multiplexed"), scheduler_address, progress,
+                                       calibration)
+    run = {"command": "demo", "config": config.to_json(), "out_dir": str(out.resolve()),
            "stages": {"simulate": {k: v for k, v in stage.items() if k != "stores"},
-                      "ingest": {"seconds": round(sum(r["seconds"] for r in ingest.values()), 3)}},
-           "ingest": ingest}
+                      "ingest": {"seconds": round(sum(r["seconds"] for r in ingest.values()), 3)},
+                      "simulate multiplexed": {k: v for k, v in mux.items() if k != "stores"},
+                      "ingest multiplexed": {"seconds": round(sum(r["seconds"] for r in ingest_mux.values()), 3)}},
+           "radiometric": calibration.info, "ingest": ingest, "ingest_multiplexed": ingest_mux}
     report = report_stage(config, out_dir, stage["stores"], run)
     report["seconds"] = round(time.perf_counter() - start, 3)
     write_json(Path(out_dir) / "report.json", report)

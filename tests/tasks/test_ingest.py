@@ -82,14 +82,16 @@ def test_error_against_truth_is_reported(capture, tmp_path, dask_client):
     assert 0 < errors["relative_l2_log_y"] < 0.3 and 0 < errors["relative_l2_linear"] < 0.5, errors
 
 
-def test_white_standard_capture_calibrates_the_leds(tmp_path, dask_client):
-    """The simulator captures a white standard; its ingest yields each LED's gain (issue 3, item 4)."""
+def test_white_standard_capture_calibrates_the_leds_and_the_ingest(capture, tmp_path, dask_client):
+    """The simulator captures a white standard; its ingest yields each LED's gain, and `btf ingest
+    --white` brings a material to the truth's unit (issue 3, item 4)."""
     from btfcore.radiometric import led_calibration
+    from tasks.radiometric import load_calibration
 
     config = SimulationConfig(device="tiny", n_materials=1, seed=2, classes=("white-standard",), n_turntable=1)
-    capture = simulate_database(config, tmp_path / "white", dask_client).stores[0]
+    white_capture = simulate_database(config, tmp_path / "white", dask_client).stores[0]
     out = tmp_path / "white-btf.zarr"
-    ingest_capture(capture, out, dask_client)
+    ingest_capture(white_capture, out, dask_client)
     group = zarr.open_group(str(out), mode="r")
     n_leds = 16
     white = np.moveaxis(group["btf"][...].reshape(4, n_leds, 32, 32, 3), 1, 0)     # (leds, views, h, w, 3)
@@ -101,3 +103,28 @@ def test_white_standard_capture_calibrates_the_leds(tmp_path, dask_client):
     # what the chain should measure: LED gain x camera sensitivity / ADC gain (DN/s per unit radiance)
     expected = device.led_rgb_gain * np.array(device.sensor.sensitivity_rgb) / device.sensor.gain_e_per_dn
     np.testing.assert_allclose(gain, expected, rtol=0.02)
+
+    # the out-of-core estimate (median over views of per-view medians, no mask) agrees
+    calibration = load_calibration(out)
+    np.testing.assert_allclose(calibration.led_gain, expected, rtol=0.03)
+    assert calibration.info["white_standard"] == str(out) and calibration.info["views"] == 4
+    plain, calibrated = tmp_path / "plain.zarr", tmp_path / "calibrated.zarr"
+    ingest_capture(capture, plain, dask_client)
+    ingest_capture(capture, calibrated, dask_client, calibration=calibration)
+    cal = zarr.open_group(str(calibrated), mode="r")
+    assert "white-standard calibrated" in cal.attrs["units"]
+    np.testing.assert_array_equal(cal["led_gain"][...], calibration.led_gain)
+    b_plain = zarr.open_group(str(plain), mode="r")["btf"][...].reshape(4, 16, -1, 3)
+    np.testing.assert_allclose(cal["btf"][...].reshape(4, 16, -1, 3), b_plain / calibration.led_gain[None, :, None],
+                               rtol=1e-5, atol=1e-6 * np.abs(b_plain).max())
+    # no fitted scale: the calibrated BTF is within a few per cent of the chain's own error
+    errors = btf_error_against_truth(calibrated, capture)
+    assert errors["calibrated_relative_l2_linear"] < errors["relative_l2_linear"] + 0.03, errors
+    assert errors["calibrated_relative_l2_log_y"] < errors["relative_l2_log_y"] + 0.03, errors
+    assert "calibrated_relative_l2_linear" not in btf_error_against_truth(plain, capture)
+    # calibrating from a corrected store, or with another dome's LED count, is refused
+    with pytest.raises(ValueError, match="already radiometrically corrected"):
+        load_calibration(calibrated)
+    wrong = type(calibration)(led_gain=calibration.led_gain[:5], info=calibration.info)
+    with pytest.raises(ValueError, match="5 LEDs"):
+        ingest_capture(capture, tmp_path / "wrong.zarr", dask_client, calibration=wrong)
