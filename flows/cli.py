@@ -112,6 +112,15 @@ def build_parser() -> argparse.ArgumentParser:
                                    "Resumes an unfinished run; never overwrites another finished output.")
     p.add_argument("capture", metavar="CAPTURE", help="capture store (.zarr)")
     p.add_argument("--out", required=True, metavar="BTF", help="BTF store to write (.zarr)")
+    p.add_argument("--white", default=None, metavar="WHITE_BTF",
+                   help="radiometric correction: the uncorrected `btf ingest` output of a white-standard capture "
+                        "on the same dome (simulate one with --classes white-standard); each LED's RGB gain is "
+                        "measured on it and divided out, so the BTF is in the ground truth's unit")
+    p.add_argument("--white-albedo", type=float, default=0.99, metavar="A",
+                   help="albedo of the white standard [default: 0.99]")
+    p.add_argument("--colour-matrix", default=None, metavar="JSON",
+                   help='camera colour matrix applied after the LED gains: {"matrix": [[...], [...], [...]]}, '
+                        "3x3 or 3x4 (affine)")
     p.add_argument("--overwrite", action="store_true", help="replace an output of another capture or settings")
 
     p = sub.add_parser("resample", help="BTF store -> BTF store on a common light x view sampling",
@@ -176,8 +185,9 @@ def _calibration(args: argparse.Namespace):
     if args.calibration:
         try:
             return Device.from_json(json.loads(Path(args.calibration).read_text()))
-        except (OSError, json.JSONDecodeError, KeyError, TypeError) as exc:
-            raise ValueError(f"{args.calibration}: not a readable dome calibration ({exc})") from None
+        except (OSError, ValueError, KeyError, TypeError) as exc:  # ValueError: bad JSON, NaN/Inf, bad geometry
+            raise ValueError(f"{args.calibration}: not a valid dome calibration ({exc}); fix the file or "
+                             "write it again with Device.to_json") from None
     if not args.device:
         raise ValueError("give the dome calibration: --device NAME or --calibration FILE.json")
     return get_device(args.device)
@@ -276,7 +286,8 @@ def _run_flow(args: argparse.Namespace, address: str, config, device) -> dict:
 
     progress = not args.no_progress
     if args.command == "ingest":
-        return ingest_flow(args.capture, args.out, address, overwrite=args.overwrite, progress=progress)
+        return ingest_flow(args.capture, args.out, address, overwrite=args.overwrite, progress=progress,
+                           white=args.white, white_albedo=args.white_albedo, colour_matrix=args.colour_matrix)
     if args.command == "resample":
         from flows.resample import resample_flow
         return resample_flow(args.btf, args.out, args.sampling, address, overwrite=args.overwrite, progress=progress)

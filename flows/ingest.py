@@ -31,8 +31,16 @@ def import_raw_flow(folder: str, manifest: str, device: Device, out: str, schedu
     return import_raw_stage(folder, manifest, device, out, scheduler_address, overwrite)
 
 
+@task(name="radiometric-calibration", cache_policy=NO_CACHE)
+def calibration_stage(white: str | None, white_albedo: float, colour_matrix: str | None):
+    from tasks.radiometric import load_calibration
+
+    return load_calibration(white, white_albedo, colour_matrix)
+
+
 @task(name="ingest-views", retries=1, cache_policy=NO_CACHE)
-def ingest_stage(capture: str, out: str, scheduler_address: str, overwrite: bool, progress: bool) -> dict[str, Any]:
+def ingest_stage(capture: str, out: str, scheduler_address: str, overwrite: bool, progress: bool,
+                 calibration=None) -> dict[str, Any]:
     from distributed import Client
 
     from flows.simulate import _progress_bar
@@ -40,7 +48,7 @@ def ingest_stage(capture: str, out: str, scheduler_address: str, overwrite: bool
 
     bar, update = _progress_bar("ingest", progress)
     with bar, Client(scheduler_address, set_as_default=False) as client:
-        return ingest_capture(capture, out, client, overwrite=overwrite, progress=update)
+        return ingest_capture(capture, out, client, overwrite=overwrite, calibration=calibration, progress=update)
 
 
 @task(name="ingest-evaluation", cache_policy=NO_CACHE)
@@ -53,30 +61,46 @@ def ingest_evaluation(capture: str, out: str) -> dict[str, Any]:
     return btf_error_against_truth(out, capture)
 
 
+@task(name="ingest-validity", cache_policy=NO_CACHE)
+def ingest_validity_stage(capture: str, out: str) -> dict[str, Any]:
+    from tasks.report import ingest_validity
+
+    return ingest_validity(out, capture)
+
+
 @flow(name="btf-ingest", log_prints=False)
 def ingest_flow(capture: str, out: str, scheduler_address: str, overwrite: bool = False,
-                progress: bool = True) -> dict[str, Any]:
-    """Capture store -> BTF store (HDR, demosaic, rectify, demultiplex per view).
+                progress: bool = True, white: str | None = None, white_albedo: float = 0.99,
+                colour_matrix: str | None = None) -> dict[str, Any]:
+    """Capture store -> BTF store (HDR, demosaic, rectify, demultiplex per view; with ``white``
+    and/or ``colour_matrix`` also the radiometric correction of :mod:`tasks.radiometric`).
 
     Writes ``<out stem>.report.json`` beside the BTF store (never the folder's
     ``report.json``, which may belong to the simulation that made the capture).
     Against a simulated capture the report also holds the relative errors
-    against its ground truth.
+    against its ground truth. Brackets without a single usable pixel (every
+    exposure saturated or near-black) are listed in the report's
+    ``valid_fraction`` and make the run fail with a ValueError naming them.
     """
     from pathlib import Path
 
     from tasks.report import write_json
 
-    stage = ingest_stage(capture, out, scheduler_address, overwrite, progress)
+    calibration = calibration_stage(white, white_albedo, colour_matrix)
+    stage = ingest_stage(capture, out, scheduler_address, overwrite, progress, calibration)
+    validity = ingest_validity_stage(capture, out)
     report = {"report": "btf-ingest", "capture": capture, "out": out, "stages": {"ingest": stage},
-              "errors_against_truth": ingest_evaluation(capture, out)}
+              "radiometric": None if calibration is None else calibration.info,
+              "valid_fraction": validity, "errors_against_truth": ingest_evaluation(capture, out)}
     write_json(Path(out).with_name(Path(out).stem + ".report.json"), report)
+    if validity["problem"]:
+        raise ValueError(validity["problem"])  # bad input: `btf ingest` exits 1, the report lists the brackets
     return report
 
 
 @task(name="ingest-database", retries=1, cache_policy=NO_CACHE)
 def ingest_database_stage(stores: list[str], out_dir: str, scheduler_address: str,
-                          progress: bool) -> dict[str, dict[str, Any]]:
+                          progress: bool, calibration=None) -> dict[str, dict[str, Any]]:
     """Ingest every capture of a simulated database; errors against each one's truth."""
     from pathlib import Path
 
@@ -90,6 +114,7 @@ def ingest_database_stage(stores: list[str], out_dir: str, scheduler_address: st
     with bar, Client(scheduler_address, set_as_default=False) as client:
         for store in stores:
             out = str(Path(out_dir) / Path(store).name)
-            results[Path(store).stem] = {**ingest_capture(store, out, client, progress=update),
+            results[Path(store).stem] = {**ingest_capture(store, out, client, calibration=calibration,
+                                                          progress=update),
                                          **btf_error_against_truth(out, store)}
     return results

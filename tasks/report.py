@@ -95,6 +95,41 @@ def material_statistics(store: CaptureStore) -> dict[str, Any]:
     }
 
 
+def ingest_validity(btf_path: str | Path, capture_path: str | Path, *, listed: int = 10) -> dict[str, Any]:
+    """How much of each raw bracket an ingest could use (the BTF store's ``valid_fraction``).
+
+    A bracket in which no raw pixel has an exposure that is neither saturated
+    nor near-black holds no radiance: its BTF rows are lower bounds (all
+    saturated) or noise (all black). Such brackets are counted, the first
+    ``listed`` are given as ``(t, c, i)`` with the saturated share of their
+    shortest exposure, and ``problem`` says where they are and what to do
+    (``None`` when every bracket has a usable pixel).
+    """
+    import zarr
+
+    group = zarr.open_group(str(btf_path), mode="r", zarr_format=3)
+    valid = np.asarray(group["valid_fraction"][...])
+    unusable = np.argwhere(valid <= 0)
+    summary: dict[str, Any] = {"min": float(valid.min()), "mean": float(valid.mean()),
+                               "brackets_without_usable_pixel": int(len(unusable)), "listed": [], "problem": None}
+    if not len(unusable):
+        return summary
+    capture = open_capture_store(capture_path)
+    threshold = group.attrs["settings"]["saturation_margin"] * capture.meta.white_level
+    for t, c, i in unusable[:listed].tolist():
+        saturated = float(np.mean(capture.raw[t, c, i, 0] >= threshold))
+        summary["listed"].append({"t_c_i": [t, c, i], "shortest_exposure_saturated": round(saturated, 4)})
+    where = ", ".join(f"({t}, {c}, {i}) [shortest exposure {item['shortest_exposure_saturated']:.0%} saturated]"
+                      for item in summary["listed"] for t, c, i in [item["t_c_i"]])
+    more = f" (+{len(unusable) - listed} more)" if len(unusable) > listed else ""
+    summary["problem"] = (
+        f"{capture_path}: raw[(t, c, i)={where}{more}]: {len(unusable)} of {valid.size} bracket(s) have no pixel "
+        "with an exposure that is neither saturated nor near-black, so their BTF rows are not radiance. "
+        "Capture those brackets again with shorter exposures where saturated (longer exposures or a working "
+        "LED where black), then import and ingest again")
+    return summary
+
+
 def plot_dome(device: Device, path: Path) -> str:
     """Hemisphere plot of LEDs, cameras and the turntable's view directions."""
     import matplotlib
@@ -284,13 +319,24 @@ def simulation_report(out_dir: str | Path, device: Device, store_paths: Sequence
              f"{m['well_exposed_fraction_min']:.4f}"] for m in materials],
     })
     if run.get("ingest"):
+        def cell(r: dict, key: str) -> str:
+            return f"{r[key]:.4f}" if key in r else "-"
+
+        rows = [(name, label, r) for key, label in (("ingest", "single LED"), ("ingest_multiplexed", "multiplexed"))
+                for name, r in run.get(key, {}).items()]
+        calibrated = run.get("radiometric") or {}
         sections.append({
-            "title": "Ingest (HDR merge, demosaic, rectify, demultiplex) against the ground truth",
-            "text": "Relative L2 error of the ingested BTF against the simulator's truth, after one "
-                    "least-squares scale per LED and channel (what a white-standard calibration measures).",
-            "table": [["material", "relative L2 (linear RGB)", "relative L2 (log Y)", "raw MB/s"]] + [
-                [name, f"{r['relative_l2_linear']:.4f}", f"{r['relative_l2_log_y']:.4f}", r.get("raw_mb_per_s", "")]
-                for name, r in run["ingest"].items()],
+            "title": "Ingest (HDR merge, demosaic, rectify, demultiplex, white-standard calibration) against the "
+                     "ground truth",
+            "text": "Relative L2 error of the ingested BTF against the simulator's truth: 'fitted' after one "
+                    "least-squares scale per LED and channel (the chain alone), 'calibrated' as ingested with the "
+                    "LED gains measured on the white standard "
+                    f"{Path(calibrated['white_standard']).name if calibrated else '(none)'} (chain and calibration).",
+            "table": [["material", "illumination", "fitted linear RGB", "fitted log Y", "calibrated linear RGB",
+                       "calibrated log Y", "raw MB/s"]] + [
+                [name, label, cell(r, "relative_l2_linear"), cell(r, "relative_l2_log_y"),
+                 cell(r, "calibrated_relative_l2_linear"), cell(r, "calibrated_relative_l2_log_y"),
+                 r.get("raw_mb_per_s", "")] for name, label, r in rows],
         })
     report = {"report": "btf-simulate", **run, "device": {
         "name": device.name, "n_cam": device.n_cam, "n_leds": device.n_leds, "n_turn": device.n_turn,
