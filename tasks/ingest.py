@@ -13,8 +13,10 @@ The BTF store ("btf-texture" 1.0, a Zarr v3 group) holds
 * attrs: schema, version, units, source capture and its config hash, settings,
   ``complete``.
 
-Angular resampling, radiometric correction, EXR export and the flow around it
-come with the rest of issue 3.
+With a :class:`tasks.radiometric.Calibration` (``btf ingest --white``) the
+textures are divided by each LED's gain from a white standard and mapped by
+the colour matrix; the store then holds ``led_gain`` (and ``colour_matrix``)
+and the attribute ``radiometric`` with their provenance.
 """
 
 from __future__ import annotations
@@ -31,23 +33,25 @@ import numpy as np
 import zarr
 
 from btfcore.ingest import IngestSettings, lv_directions, process_view
+from tasks.radiometric import Calibration
 from tasks.store import CaptureStore, open_capture_store, to_json_attr
 
 SCHEMA_NAME = "btf-texture"
 SCHEMA_VERSION = "1.0"
 
 
-def ingest_hash(capture: CaptureStore, settings: IngestSettings) -> str:
-    """What an ingest output depends on: the capture's config hash and the settings."""
+def ingest_hash(capture: CaptureStore, settings: IngestSettings, calibration: Calibration | None = None) -> str:
+    """What an ingest output depends on: the capture's config hash, the settings, the calibration."""
     payload = {"capture": capture.group.attrs.get("provenance", {}).get("config_hash"),
-               "settings": asdict(settings), "schema": f"{SCHEMA_NAME}/{SCHEMA_VERSION}"}
+               "settings": asdict(settings), "schema": f"{SCHEMA_NAME}/{SCHEMA_VERSION}",
+               "calibration": None if calibration is None else calibration.key()}
     return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:16]
 
 
 def create_btf_store(path: str | os.PathLike, capture: CaptureStore, settings: IngestSettings, *,
-                     overwrite: bool = False) -> zarr.Group:
+                     overwrite: bool = False, calibration: Calibration | None = None) -> zarr.Group:
     """Create the BTF store of an ingest, or reopen an unfinished one of the same ingest."""
-    key = ingest_hash(capture, settings)
+    key = ingest_hash(capture, settings, calibration)
     if Path(path).exists() and not overwrite:
         group = zarr.open_group(str(path), mode="r+", zarr_format=3)
         attrs = dict(group.attrs)
@@ -72,9 +76,18 @@ def create_btf_store(path: str | os.PathLike, capture: CaptureStore, settings: I
                        dtype="float64", fill_value=0.0, compressors=None)
     group.create_array("written", shape=(n_turn, n_cam), chunks=(1, 1), dtype="uint8", fill_value=0,
                        compressors=None)
+    units = "DN/s per unit LED drive, before radiometric correction"
+    if calibration is not None:
+        for name in ("led_gain", "colour_matrix"):
+            data = getattr(calibration, name)
+            if data is not None:
+                group.create_array(name, shape=data.shape, dtype="float64", chunks=data.shape,
+                                   compressors=None)[...] = data
+        if calibration.led_gain is not None:
+            units = "radiance relative to a unit-irradiance white light (white-standard calibrated)"
     group.attrs.put(to_json_attr({
-        "schema": SCHEMA_NAME, "schema_version": SCHEMA_VERSION,
-        "units": "DN/s per unit LED drive, before radiometric correction",
+        "schema": SCHEMA_NAME, "schema_version": SCHEMA_VERSION, "units": units,
+        "radiometric": None if calibration is None else calibration.info,
         "lv_order": ["turntable", "camera", "light"], "texture_shape": [h, w],
         "source": str(capture.path), "ingest_hash": key, "settings": asdict(settings), "complete": False,
         "turntable_cameras_leds": [n_turn, n_cam, n_leds],
@@ -82,7 +95,8 @@ def create_btf_store(path: str | os.PathLike, capture: CaptureStore, settings: I
     return group
 
 
-def ingest_view(capture_path: str, out_path: str, settings: IngestSettings, t: int, c: int) -> tuple[int, int]:
+def ingest_view(capture_path: str, out_path: str, settings: IngestSettings, t: int, c: int,
+                calibration: Calibration | None = None) -> tuple[int, int]:
     """Process one view of the capture and write its chunk of the BTF store."""
     capture = open_capture_store(capture_path)
     meta, sensor = capture.meta, capture.meta.sensor
@@ -92,7 +106,9 @@ def ingest_view(capture_path: str, out_path: str, settings: IngestSettings, t: i
         homography=capture.homography[t, c], texture_shape=tuple(meta.texture_shape),
         sample_size_m=meta.sample_size_m, dark_frames=capture.dark_frames[c],
         dark_exposure_time=meta.dark_exposure_time, gain_e_per_dn=sensor.get("gain_e_per_dn"),
-        read_noise_e=sensor.get("read_noise_e"), settings=settings)
+        read_noise_e=sensor.get("read_noise_e"), settings=settings,
+        led_gain=None if calibration is None else calibration.led_gain,
+        colour_matrix=None if calibration is None else calibration.colour_matrix)
     group = zarr.open_group(out_path, mode="r+", zarr_format=3)
     n_leds = capture.n_leds
     row = (t * capture.n_cam + c) * n_leds
@@ -104,18 +120,23 @@ def ingest_view(capture_path: str, out_path: str, settings: IngestSettings, t: i
 
 def ingest_capture(capture_path: str | os.PathLike, out_path: str | os.PathLike, client: Any, *,
                    settings: IngestSettings = IngestSettings(), overwrite: bool = False,
+                   calibration: Calibration | None = None,
                    progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
     """Ingest a capture store into a BTF store on a Dask cluster; resumes unfinished runs."""
     from distributed import as_completed
 
     start = time.perf_counter()
     capture = open_capture_store(capture_path)
-    group = create_btf_store(out_path, capture, settings, overwrite=overwrite)
+    if calibration is not None and calibration.led_gain is not None and len(calibration.led_gain) != capture.n_leds:
+        raise ValueError(f"{calibration.info.get('white_standard')}: the white standard has "
+                         f"{len(calibration.led_gain)} LEDs, the capture {capture_path} {capture.n_leds}; "
+                         "calibrate with a white standard captured on the same dome")
+    group = create_btf_store(out_path, capture, settings, overwrite=overwrite, calibration=calibration)
     if group.attrs.get("complete"):
         return {"views_processed": 0, "views_skipped": capture.n_turn * capture.n_cam, "seconds": 0.0}
     written = group["written"][...]
     pending = [(t, c) for t, c in np.ndindex(written.shape) if not written[t, c]]
-    futures = [client.submit(ingest_view, str(capture_path), str(out_path), settings, t, c, pure=False)
+    futures = [client.submit(ingest_view, str(capture_path), str(out_path), settings, t, c, calibration, pure=False)
                for t, c in pending]
     for done, future in enumerate(as_completed(futures), 1):
         future.result()
@@ -130,16 +151,33 @@ def ingest_capture(capture_path: str | os.PathLike, out_path: str | os.PathLike,
             "seconds": round(seconds, 3), "raw_mb_per_s": round(raw_bytes / 1e6 / max(seconds, 1e-9), 2)}
 
 
+def _relative_errors(est: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
+    """Relative L2 error on linear RGB and on ``log(Y + eps)``, eps = 1e-3 of the truth's mean Y
+    (noise below 0.1 % of the mean is not log-amplified)."""
+    rel_linear = float(np.linalg.norm(est - truth) / np.linalg.norm(truth))
+    luma = np.array([0.2126, 0.7152, 0.0722])
+    y_est, y_true = est @ luma, truth @ luma
+    eps = 1e-3 * float(y_true.mean())
+    log_est, log_true = np.log(np.maximum(y_est, 0.0) + eps), np.log(y_true + eps)
+    return rel_linear, float(np.linalg.norm(log_est - log_true) / np.linalg.norm(log_true))
+
+
 def btf_error_against_truth(btf_path: str | os.PathLike, capture_path: str | os.PathLike) -> dict[str, float]:
     """Relative L2 errors of an ingested BTF against a simulated capture's ground truth,
     on linear RGB and on log luminance (``log(Y + eps)``, eps = 1e-3 mean Y).
 
-    The ingested BTF is in DN/s; each (light, channel) is brought to the truth's
-    scale by the least-squares factor over all views of that light (what a
-    white-standard calibration measures), so that the figures measure the
-    chain, not the calibration.
+    ``relative_l2_*``: each (light, channel) of the BTF is first brought to the
+    truth's scale by the least-squares factor over all views of that light
+    (what a white-standard calibration measures), so that the figures
+    measure the chain, not the calibration. ``calibrated_relative_l2_*``
+    (only for a store ingested with ``--white``): the BTF as it is, which
+    measures the chain and the white-standard calibration together.
     """
     group = zarr.open_group(str(btf_path), mode="r", zarr_format=3)
+    if group.attrs.get("schema") != SCHEMA_NAME or "resampled_from" in group.attrs:
+        raise ValueError(f"{btf_path}: not the output of `btf ingest` (schema {group.attrs.get('schema')!r}"
+                         f"{', resampled' if 'resampled_from' in group.attrs else ''}); the truth is sampled like "
+                         "the capture, so evaluate the ingested store, not a resampled one")
     capture = open_capture_store(capture_path)
     btf = np.asarray(group["btf"][...], dtype=np.float64)
     truth = np.asarray(capture.truth["btf"][...], dtype=np.float64)
@@ -147,11 +185,9 @@ def btf_error_against_truth(btf_path: str | os.PathLike, capture_path: str | os.
     b = btf.reshape(-1, n_leds, *btf.shape[1:])
     g = truth.reshape(b.shape)
     scale = (b * g).sum(axis=(0, 2, 3)) / np.maximum((b * b).sum(axis=(0, 2, 3)), 1e-300)   # (n_leds, 3)
-    est = b * scale[None, :, None, None, :]
-    rel_linear = float(np.linalg.norm(est - g) / np.linalg.norm(g))
-    luma = np.array([0.2126, 0.7152, 0.0722])
-    y_est, y_true = est @ luma, g @ luma
-    eps = 1e-3 * float(y_true.mean())          # log(Y + eps): noise below 0.1 % of the mean is not log-amplified
-    log_est, log_true = np.log(np.maximum(y_est, 0.0) + eps), np.log(y_true + eps)
-    rel_log = float(np.linalg.norm(log_est - log_true) / np.linalg.norm(log_true))
-    return {"relative_l2_linear": rel_linear, "relative_l2_log_y": rel_log}
+    rel_linear, rel_log = _relative_errors(b * scale[None, :, None, None, :], g)
+    errors = {"relative_l2_linear": rel_linear, "relative_l2_log_y": rel_log}
+    if (group.attrs.get("radiometric") or {}).get("white_standard"):
+        rel_linear, rel_log = _relative_errors(b, g)
+        errors.update({"calibrated_relative_l2_linear": rel_linear, "calibrated_relative_l2_log_y": rel_log})
+    return errors

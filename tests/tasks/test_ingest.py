@@ -128,3 +128,10 @@ def test_white_standard_capture_calibrates_the_leds_and_the_ingest(capture, tmp_
     wrong = type(calibration)(led_gain=calibration.led_gain[:5], info=calibration.info)
     with pytest.raises(ValueError, match="5 LEDs"):
         ingest_capture(capture, tmp_path / "wrong.zarr", dask_client, calibration=wrong)
+
+
+def test_evaluation_refuses_a_store_that_is_not_an_ingest(capture, tmp_path):
+    resampled = zarr.open_group(str(tmp_path / "r.zarr"), mode="w", zarr_format=3)
+    resampled.attrs.put({"schema": "btf-texture", "resampled_from": {"path": "x"}})
+    with pytest.raises(ValueError, match="r.zarr: not the output of `btf ingest`.*resampled"):
+        btf_error_against_truth(tmp_path / "r.zarr", capture)
