@@ -21,7 +21,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
+from scipy import sparse
 
 from btfcore.demosaic import demosaic
 from btfcore.demultiplex import demultiplex_operator
@@ -42,19 +44,45 @@ class IngestSettings:
     saturation_margin: float = 0.98
 
 
+def view_window(homography: np.ndarray, frame_shape: tuple[int, int], texture_shape: tuple[int, int],
+                sample_size_m: float, settings: IngestSettings = IngestSettings()
+                ) -> tuple[slice, slice, sparse.csr_matrix]:
+    """The part of a view's raw frames that its texture depends on, and its rectification operator.
+
+    Parameters
+    ----------
+    homography : (3, 3) ndarray
+        Sample-plane metres -> raw pixel ``(col, row, 1)``.
+    frame_shape : (2,) tuple of int
+        ``(rows, cols)`` of the raw frames.
+
+    Returns
+    -------
+    row_window, col_window : slice
+        The pixels the rectification reads, plus the demosaicing filter's
+        radius, starting on the Bayer period (:func:`btfcore.rectify.support_window`).
+    A : (h * w, n_rows * n_cols) scipy.sparse.csr_matrix
+        The rectification operator on that window.
+    """
+    A_full = rectification_matrix(homography, frame_shape, texture_shape, sample_size_m, method=settings.rectify)
+    return support_window(A_full, frame_shape, margin=DEMOSAIC_RADIUS, align=2)
+
+
 def process_view(frames: np.ndarray, exposure_time: np.ndarray, patterns: np.ndarray, *,
                  bayer_pattern: str, black_level: float, white_level: float, homography: np.ndarray,
                  texture_shape: tuple[int, int], sample_size_m: float,
                  dark_frames: np.ndarray | None = None, dark_exposure_time: np.ndarray | None = None,
                  gain_e_per_dn: float | None = None, read_noise_e: float | None = None,
                  led_gain: np.ndarray | None = None, colour_matrix: np.ndarray | None = None,
+                 window: tuple[slice, slice, sparse.csr_matrix] | None = None,
                  settings: IngestSettings = IngestSettings()) -> tuple[np.ndarray, np.ndarray]:
     """Raw brackets of one view to demultiplexed, rectified linear RGB textures.
 
     Parameters
     ----------
     frames : (n_illum, n_exp, rows, cols) ndarray of uint16
-        The view's raw Bayer brackets, one per illumination pattern.
+        The view's raw Bayer brackets, one per illumination pattern: whole
+        frames, or only the window when ``window`` is given.
     exposure_time : (n_illum, n_exp) ndarray
         Seconds, increasing along the exposure axis.
     patterns : (n_illum, n_leds) ndarray
@@ -69,6 +97,10 @@ def process_view(frames: np.ndarray, exposure_time: np.ndarray, patterns: np.nda
         irradiance-weighted reflectance); the textures are divided by it.
     colour_matrix : (3, 3) or (3, 4) ndarray, optional
         Camera RGB -> target RGB, applied after the LED gains.
+    window : (slice, slice, sparse matrix), optional
+        :func:`view_window` of this view, computed by the caller so that it
+        reads only the window of the frames from storage; ``None``: computed
+        here from whole frames.
 
     Returns
     -------
@@ -81,12 +113,18 @@ def process_view(frames: np.ndarray, exposure_time: np.ndarray, patterns: np.nda
         :func:`btfcore.rectify.support_window`) with at least one usable
         exposure, per pattern.
     """
-    n_illum, n_exp, rows, cols = frames.shape
-    A_full = rectification_matrix(homography, (rows, cols), texture_shape, sample_size_m, method=settings.rectify)
+    n_illum, n_exp = frames.shape[:2]
     # only the window the operator reads (plus the demosaicing filter's radius) is merged and demosaicked
-    row_win, col_win, A = support_window(A_full, (rows, cols), margin=DEMOSAIC_RADIUS, align=2)
-    window = frames[:, :, row_win, col_win]
-    win_shape = window.shape[2:]
+    if window is None:
+        row_win, col_win, A = view_window(homography, frames.shape[2:], texture_shape, sample_size_m, settings)
+        frames = frames[:, :, row_win, col_win]
+    else:
+        row_win, col_win, A = window
+        expected = (row_win.stop - row_win.start, col_win.stop - col_win.start)
+        if frames.shape[2:] != expected:
+            raise ValueError(f"frames are {frames.shape[2:]} pixels but the view's window {row_win}, {col_win} "
+                             f"is {expected}: pass frames[..., row_window, col_window]")
+    win_shape = frames.shape[2:]
     rectified = np.empty((n_illum, *texture_shape, 3), dtype=np.float32)
     valid_fraction = np.empty(n_illum)
     dark_line = None
@@ -105,7 +143,7 @@ def process_view(frames: np.ndarray, exposure_time: np.ndarray, patterns: np.nda
                 for k_exp, t_k in enumerate(exposure_time[i]):
                     np.multiply(dark_line[1], np.float32(t_k), out=dark[k_exp])
                     dark[k_exp] += dark_line[0]                                     # dark = offset + rate t
-            hdr, valid = merge_linear(window[i], exposure_time[i], black_level=black_level,
+            hdr, valid = merge_linear(frames[i], exposure_time[i], black_level=black_level,
                                       white_level=white_level, gain_e_per_dn=gain_e_per_dn,
                                       read_noise_e=read_noise_e, dark=dark,
                                       saturation_margin=settings.saturation_margin)
@@ -113,7 +151,8 @@ def process_view(frames: np.ndarray, exposure_time: np.ndarray, patterns: np.nda
             demosaic(hdr, bayer_pattern, method=settings.demosaic, out=stack[:, :, 3 * k:3 * k + 3])
         n = len(members)
         out = apply_rectification(A, stack[:, :, :3 * n], texture_shape)           # (h, w, 3n)
-        rectified[first:first + n] = np.moveaxis(out.reshape(*texture_shape, n, 3), 2, 0)
+        # (texels, n) -> (n, texels) of RGB triplets: OpenCV's blocked transpose, 3x numpy's moveaxis copy
+        rectified[first:first + n].reshape(n, -1, 3)[...] = cv2.transpose(out.reshape(-1, n, 3))
     P = demultiplex_operator(patterns).astype(np.float32)           # (n_leds, n_illum)
     if P.shape[0] == n_illum and np.array_equal(P, np.eye(n_illum, dtype=np.float32)):
         textures = rectified                                        # single-LED capture in LED order

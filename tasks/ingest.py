@@ -32,7 +32,7 @@ from typing import Any, Callable
 import numpy as np
 import zarr
 
-from btfcore.ingest import IngestSettings, lv_directions, process_view
+from btfcore.ingest import IngestSettings, lv_directions, process_view, view_window
 from tasks.radiometric import Calibration
 from tasks.store import CaptureStore, open_capture_store, to_json_attr
 
@@ -100,15 +100,17 @@ def ingest_view(capture_path: str, out_path: str, settings: IngestSettings, t: i
     """Process one view of the capture and write its chunk of the BTF store."""
     capture = open_capture_store(capture_path)
     meta, sensor = capture.meta, capture.meta.sensor
+    window = view_window(capture.homography[t, c], capture.roi_shape, tuple(meta.texture_shape),
+                         meta.sample_size_m, settings)
     textures, valid = process_view(
-        capture.raw[t, c], capture.exposure_time[t, c], capture.illumination,
+        capture.raw[t, c, :, :, window[0], window[1]], capture.exposure_time[t, c], capture.illumination,
         bayer_pattern=meta.bayer_pattern, black_level=meta.black_level, white_level=meta.white_level,
         homography=capture.homography[t, c], texture_shape=tuple(meta.texture_shape),
         sample_size_m=meta.sample_size_m, dark_frames=capture.dark_frames[c],
         dark_exposure_time=meta.dark_exposure_time, gain_e_per_dn=sensor.get("gain_e_per_dn"),
         read_noise_e=sensor.get("read_noise_e"), settings=settings,
         led_gain=None if calibration is None else calibration.led_gain,
-        colour_matrix=None if calibration is None else calibration.colour_matrix)
+        colour_matrix=None if calibration is None else calibration.colour_matrix, window=window)
     group = zarr.open_group(out_path, mode="r+", zarr_format=3)
     n_leds = capture.n_leds
     row = (t * capture.n_cam + c) * n_leds

@@ -1,0 +1,45 @@
+"""`btf demo` (the README's first command) end to end, and `btf ingest --white` on the CLI."""
+
+from __future__ import annotations
+
+import json
+
+import zarr
+
+
+def test_demo_simulates_calibrates_ingests_and_reports(run_btf, tmp_path):
+    out = tmp_path / "demo"
+    code, stdout, stderr = run_btf("demo", "--out", out, "--materials", "2")
+    assert code == 0, stderr[-3000:]
+    assert json.loads(stdout)["materials"] == 2
+    report = json.loads((out / "report.json").read_text())
+    # the white standard calibrated every LED, and both illuminations were ingested with it
+    assert report["radiometric"]["views"] == 12 and report["radiometric"]["max_relative_spread_over_views"] < 0.05
+    for key in ("ingest", "ingest_multiplexed"):
+        assert len(report[key]) == 2
+        for errors in report[key].values():
+            # a calibration that failed (wrong unit, wrong LED) would be off by far more than 0.05
+            assert abs(errors["calibrated_relative_l2_linear"] - errors["relative_l2_linear"]) < 0.05, errors
+            assert 0 < errors["relative_l2_linear"] < 0.5, errors
+    html = (out / "report.html").read_text()
+    assert "calibrated log Y" in html and "multiplexed" in html
+    btf = zarr.open_group(str(out / "btf-multiplexed" / "000-leather.zarr"), mode="r")
+    assert btf.attrs["complete"] and "white-standard calibrated" in btf.attrs["units"]
+    # a second run reuses every finished store
+    code, _, stderr = run_btf("demo", "--out", out, "--materials", "2")
+    assert code == 0, stderr[-3000:]
+    again = json.loads((out / "report.json").read_text())
+    assert again["stages"]["simulate"]["views_rendered"] == 0
+    assert all(r["views_processed"] == 0 for r in again["ingest"].values())
+
+
+def test_ingest_white_standard_errors_name_the_store(run_btf, tiny_database, tmp_path):
+    capture = sorted(tiny_database[1].glob("*.zarr"))[0]
+    code, _, stderr = run_btf("ingest", capture, "--out", tmp_path / "b.zarr", "--white", tmp_path / "none.zarr")
+    assert code == 1
+    assert "none.zarr" in stderr and "ingest the white-standard capture first" in stderr
+    assert not (tmp_path / "b.zarr").exists()
+    matrix = tmp_path / "m.json"
+    matrix.write_text('{"matrix": [[1, 0, 0], [0, NaN, 0], [0, 0, 1]]}')
+    code, _, stderr = run_btf("ingest", capture, "--out", tmp_path / "b.zarr", "--colour-matrix", matrix)
+    assert code == 1 and "m.json" in stderr and "matrix[1, 1]" in stderr, stderr
