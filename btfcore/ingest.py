@@ -133,25 +133,28 @@ def process_view(frames: np.ndarray, exposure_time: np.ndarray, patterns: np.nda
         d1, d2 = dark_per_exposure(dark_frames[:, row_win, col_win], dark_exposure_time, [1.0, 2.0],
                                    black_level=black_level)
         dark_line = ((2.0 * d1 - d2).astype(np.float32), (d2 - d1).astype(np.float32))   # offset DN, rate DN/s
-    block = 32  # illuminations rectified by one sparse product: (rows, cols, 3 * block) float32
-    stack = np.empty((*win_shape, 3 * min(block, n_illum)), dtype=np.float32)
-    dark = None if dark_line is None else np.empty((n_exp, *win_shape), dtype=np.float32)   # reused buffers
+    block = min(32, n_illum)  # illuminations demosaicked as one batch and rectified by one sparse product
+    hdr = np.empty((block, *win_shape), dtype=np.float32)                                    # reused buffers
+    rgb = np.empty((block, *win_shape, 3), dtype=np.float32)
+    dark = None if dark_line is None else np.empty((n_exp, *win_shape), dtype=np.float32)
     for first in range(0, n_illum, block):
-        members = range(first, min(first + block, n_illum))
-        for k, i in enumerate(members):
+        n = min(block, n_illum - first)
+        for k in range(n):
+            i = first + k
             if dark is not None:
                 for k_exp, t_k in enumerate(exposure_time[i]):
                     np.multiply(dark_line[1], np.float32(t_k), out=dark[k_exp])
                     dark[k_exp] += dark_line[0]                                     # dark = offset + rate t
-            hdr, valid = merge_linear(frames[i], exposure_time[i], black_level=black_level,
-                                      white_level=white_level, gain_e_per_dn=gain_e_per_dn,
-                                      read_noise_e=read_noise_e, dark=dark,
-                                      saturation_margin=settings.saturation_margin)
+            hdr[k], valid = merge_linear(frames[i], exposure_time[i], black_level=black_level,
+                                         white_level=white_level, gain_e_per_dn=gain_e_per_dn,
+                                         read_noise_e=read_noise_e, dark=dark,
+                                         saturation_margin=settings.saturation_margin)
             valid_fraction[i] = float(valid.mean())
-            demosaic(hdr, bayer_pattern, method=settings.demosaic, out=stack[:, :, 3 * k:3 * k + 3])
-        n = len(members)
-        out = apply_rectification(A, stack[:, :, :3 * n], texture_shape)           # (h, w, 3n)
-        # (texels, n) -> (n, texels) of RGB triplets: OpenCV's blocked transpose, 3x numpy's moveaxis copy
+        demosaic(hdr[:n], bayer_pattern, method=settings.demosaic, out=rgb[:n])
+        # (n, pixels) -> (pixels, n) of RGB triplets and back: OpenCV's blocked transposes (3x numpy's
+        # strided copies), so that one sparse product rectifies the n images
+        stack = cv2.transpose(rgb[:n].reshape(n, -1, 3)).reshape(*win_shape, 3 * n)
+        out = apply_rectification(A, stack, texture_shape)                                # (h, w, 3n)
         rectified[first:first + n].reshape(n, -1, 3)[...] = cv2.transpose(out.reshape(-1, n, 3))
     P = demultiplex_operator(patterns).astype(np.float32)           # (n_leds, n_illum)
     if P.shape[0] == n_illum and np.array_equal(P, np.eye(n_illum, dtype=np.float32)):
