@@ -101,7 +101,8 @@ def demo_flow(out_dir: str, scheduler_address: str, seed: int = 0, n_materials: 
                       "ingest": {"seconds": round(sum(r["seconds"] for r in ingest.values()), 3)},
                       "simulate multiplexed": {k: v for k, v in mux.items() if k != "stores"},
                       "ingest multiplexed": {"seconds": round(sum(r["seconds"] for r in ingest_mux.values()), 3)}},
-           "radiometric": calibration.info, "ingest": ingest, "ingest_multiplexed": ingest_mux}
+           "radiometric": calibration.info, "ingest": ingest, "ingest_multiplexed": ingest_mux,
+           "ingest_btf": {Path(store).stem: str(out / "btf" / Path(store).name) for store in stage["stores"]}}
     report = report_stage(config, out_dir, stage["stores"], run)
     report["seconds"] = round(time.perf_counter() - start, 3)
     write_json(Path(out_dir) / "report.json", report)

@@ -219,6 +219,28 @@ def texture_images(store: CaptureStore, out: Path, prefix: str) -> list[dict]:
     return items
 
 
+def ingest_images(store: CaptureStore, btf_path: str | Path, out: Path, prefix: str) -> list[dict]:
+    """Ground truth beside the ingested BTF at the pairs of :func:`pick_lv_pairs`, one white point
+    (the truth's) when the BTF is calibrated to the truth's unit, its own otherwise."""
+    import zarr
+
+    truth = store.group["truth"]["btf"]
+    btf = zarr.open_group(str(btf_path), mode="r", zarr_format=3)
+    calibrated = bool((btf.attrs.get("radiometric") or {}).get("white_standard"))
+    pairs = pick_lv_pairs(store)
+    got = np.stack([btf["btf"][lv] for lv, _ in pairs])
+    want = np.stack([truth[lv] for lv, _ in pairs])
+    white_truth = float(np.percentile(want, 99.5))
+    white_got = white_truth if calibrated else float(np.percentile(got, 99.5))
+    items = []
+    for (lv, label), a, b in zip(pairs, want, got):
+        pad = np.full((a.shape[0], 2, 3), 255, np.uint8)
+        image = np.concatenate([tonemap(a, white=white_truth), pad, tonemap(np.maximum(b, 0), white=white_got)], 1)
+        name = _save_png(out / f"{prefix}_ingest_lv{lv}.png", image, scale=max(1, 128 // a.shape[0]))
+        items.append({"file": name, "lv": lv, "label": label, "calibrated": calibrated})
+    return items
+
+
 def abrdf_image(store: CaptureStore, out: Path, prefix: str) -> dict:
     """The centre texel's ABRDF laid out as in the thesis' Fig. 1.3 (x: light, y: view)."""
     truth = store.group["truth"]["btf"]
@@ -318,6 +340,16 @@ def simulation_report(out_dir: str | Path, device: Device, store_paths: Sequence
              f"{m['exposure_time_s']['min']:.3g} - {m['exposure_time_s']['max']:.3g}",
              f"{m['well_exposed_fraction_min']:.4f}"] for m in materials],
     })
+    ingest_figs = []
+    for path, store in zip(store_paths, stores):
+        btf_path = (run.get("ingest_btf") or {}).get(Path(path).stem)
+        if btf_path and store.has_truth:
+            ingest_figs += [{"file": f"report_files/{item['file']}",
+                             "caption": f"{Path(path).stem}: {item['label']} (lv {item['lv']}): truth | ingested"
+                                        f"{' (calibrated, same white point)' if item['calibrated'] else ''}"}
+                            for item in ingest_images(store, btf_path, fig_dir, Path(path).stem)]
+    if ingest_figs:
+        sections.append({"title": "Ingested BTF beside the ground truth (single-LED capture)", "figures": ingest_figs})
     if run.get("ingest"):
         def cell(r: dict, key: str) -> str:
             return f"{r[key]:.4f}" if key in r else "-"

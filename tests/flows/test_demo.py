@@ -23,6 +23,7 @@ def test_demo_simulates_calibrates_ingests_and_reports(run_btf, tmp_path):
             assert 0 < errors["relative_l2_linear"] < 0.5, errors
     html = (out / "report.html").read_text()
     assert "calibrated log Y" in html and "multiplexed" in html
+    assert "Ingested BTF beside the ground truth" in html and (out / "report_files" / "000-leather_ingest_lv0.png").exists()
     btf = zarr.open_group(str(out / "btf-multiplexed" / "000-leather.zarr"), mode="r")
     assert btf.attrs["complete"] and "white-standard calibrated" in btf.attrs["units"]
     # a second run reuses every finished store
