@@ -109,7 +109,9 @@ def build_parser() -> argparse.ArgumentParser:
                                    "demultiplex the illumination patterns. Writes the BTF store and, beside it, "
                                    "BTF-stem.report.json (with errors against the ground truth for simulated "
                                    "captures). "
-                                   "Resumes an unfinished run; never overwrites another finished output.")
+                                   "Resumes an unfinished run; never overwrites another finished output. With "
+                                   "--overwrite the new store is built beside it (BTF-stem.partial.zarr) and "
+                                   "replaces it, with its report, only once complete and checked.")
     p.add_argument("capture", metavar="CAPTURE", help="capture store (.zarr)")
     p.add_argument("--out", required=True, metavar="BTF", help="BTF store to write (.zarr)")
     p.add_argument("--white", default=None, metavar="WHITE_BTF",
@@ -121,7 +123,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--colour-matrix", default=None, metavar="JSON",
                    help='camera colour matrix applied after the LED gains: {"matrix": [[...], [...], [...]]}, '
                         "3x3 or 3x4 (affine)")
-    p.add_argument("--overwrite", action="store_true", help="replace an output of another capture or settings")
+    p.add_argument("--overwrite", action="store_true",
+                   help="recompute and replace the output at --out (kept until the new one is complete and checked)")
 
     p = sub.add_parser("resample", help="BTF store -> BTF store on a common light x view sampling",
                        description="Resample a finished BTF store (from `btf ingest`) to a common light x view "
@@ -262,6 +265,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.command == "resample":  # bad input is named before a cluster starts
             from tasks.resample import check_inputs
             check_inputs(args.btf, args.out, args.sampling, overwrite=args.overwrite)
+        if args.command == "ingest":
+            from tasks.ingest import check_capture
+            check_capture(args.capture)
     except (ValueError, FileNotFoundError, FileExistsError) as exc:
         print(f"btf {args.command}: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT

@@ -8,10 +8,11 @@ from prefect import flow, task
 from prefect.cache_policies import NO_CACHE
 
 from btfcore.simulate.devices import Device
+from flows.runtime import RETRY_ONCE
 from tasks.ingest_raw import import_raw, plan_raw_import
 
 
-@task(name="import-raw-files", retries=1, cache_policy=NO_CACHE)
+@task(name="import-raw-files", **RETRY_ONCE, cache_policy=NO_CACHE)
 def import_raw_stage(folder: str, manifest: str, device: Device, out: str, scheduler_address: str,
                      overwrite: bool) -> dict[str, Any]:
     from distributed import Client
@@ -38,9 +39,10 @@ def calibration_stage(white: str | None, white_albedo: float, colour_matrix: str
     return load_calibration(white, white_albedo, colour_matrix)
 
 
-@task(name="ingest-views", retries=1, cache_policy=NO_CACHE)
+@task(name="ingest-views", **RETRY_ONCE, cache_policy=NO_CACHE)
 def ingest_stage(capture: str, out: str, scheduler_address: str, overwrite: bool, progress: bool,
                  calibration=None) -> dict[str, Any]:
+    """Ingest the views; a replacement of another ingest's output stays staged (not committed)."""
     from distributed import Client
 
     from flows.simulate import _progress_bar
@@ -48,7 +50,15 @@ def ingest_stage(capture: str, out: str, scheduler_address: str, overwrite: bool
 
     bar, update = _progress_bar("ingest", progress)
     with bar, Client(scheduler_address, set_as_default=False) as client:
-        return ingest_capture(capture, out, client, overwrite=overwrite, calibration=calibration, progress=update)
+        return ingest_capture(capture, out, client, overwrite=overwrite, calibration=calibration, progress=update,
+                              commit=False)
+
+
+@task(name="commit-staged-output", cache_policy=NO_CACHE)
+def commit_stage(out: str) -> str:
+    from tasks.ingest import commit_staged
+
+    return str(commit_staged(out))
 
 
 @task(name="ingest-evaluation", cache_policy=NO_CACHE)
@@ -81,24 +91,36 @@ def ingest_flow(capture: str, out: str, scheduler_address: str, overwrite: bool 
     against its ground truth. Brackets without a single usable pixel (every
     exposure saturated or near-black) are listed in the report's
     ``valid_fraction`` and make the run fail with a ValueError naming them.
+
+    With ``overwrite``, another ingest's output at ``out`` (and its report) is
+    replaced only when the new store is complete and has no such bracket;
+    until then the new store is ``<out stem>.partial.zarr``, and a failed
+    check writes its report beside it (``<out stem>.partial.report.json``).
     """
     from pathlib import Path
 
+    from tasks.ingest import staging_path
     from tasks.report import write_json
 
     calibration = calibration_stage(white, white_albedo, colour_matrix)
     stage = ingest_stage(capture, out, scheduler_address, overwrite, progress, calibration)
-    validity = ingest_validity_stage(capture, out)
+    store = str(staging_path(out)) if stage["staged"] else out
+    validity = ingest_validity_stage(capture, store)
     report = {"report": "btf-ingest", "capture": capture, "out": out, "stages": {"ingest": stage},
               "radiometric": None if calibration is None else calibration.info,
-              "valid_fraction": validity, "errors_against_truth": ingest_evaluation(capture, out)}
-    write_json(Path(out).with_name(Path(out).stem + ".report.json"), report)
+              "valid_fraction": validity, "errors_against_truth": ingest_evaluation(capture, store)}
     if validity["problem"]:
-        raise ValueError(validity["problem"])  # bad input: `btf ingest` exits 1, the report lists the brackets
+        # bad input: `btf ingest` exits 1, the report (beside the store that holds this run) lists the brackets
+        write_json(Path(store).with_name(Path(store).stem + ".report.json"), report)
+        kept = f"; {out} was left as it was, the new store is {store}" if stage["staged"] else ""
+        raise ValueError(validity["problem"] + kept)
+    if stage["staged"]:
+        commit_stage(out)
+    write_json(Path(out).with_name(Path(out).stem + ".report.json"), report)
     return report
 
 
-@task(name="ingest-database", retries=1, cache_policy=NO_CACHE)
+@task(name="ingest-database", **RETRY_ONCE, cache_policy=NO_CACHE)
 def ingest_database_stage(stores: list[str], out_dir: str, scheduler_address: str,
                           progress: bool, calibration=None) -> dict[str, dict[str, Any]]:
     """Ingest every capture of a simulated database; errors against each one's truth."""

@@ -8,11 +8,13 @@ from typing import Any
 from prefect import flow, task
 from prefect.cache_policies import NO_CACHE
 
+from flows.runtime import RETRY_ONCE
 from tasks.report import write_json
 
 
-# Retrying the stage resumes it: finished target views are skipped, pending ones re-run.
-@task(name="resample-views", retries=1, cache_policy=NO_CACHE)
+# Retrying the stage resumes it: finished target views are skipped, pending ones re-run; bad input is
+# not retried (it would only fail again).
+@task(name="resample-views", **RETRY_ONCE, cache_policy=NO_CACHE)
 def resample_stage(btf: str, out: str, sampling: str, scheduler_address: str, overwrite: bool,
                    progress: bool) -> dict[str, Any]:
     from distributed import Client

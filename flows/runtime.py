@@ -44,6 +44,27 @@ class Profile:
     prefect: dict[str, Any] = field(default_factory=dict)
 
 
+#: Errors that mean bad input or a refused output (the message says what to fix): running the stage
+#: again cannot help, so a stage's retry is kept for the unexpected (a lost worker, a full disk).
+BAD_INPUT_ERRORS = (ValueError, FileExistsError, FileNotFoundError)
+
+
+def retry_unless_bad_input(task: Any, task_run: Any, state: Any) -> bool:
+    """Prefect ``retry_condition_fn``: retry a failed stage unless it failed on bad input."""
+    try:
+        state.result()
+    except BAD_INPUT_ERRORS:
+        return False
+    except Exception:  # anything else (a lost worker, a full disk) is worth the stage's retry
+        return True
+    return True
+
+
+#: ``@task(**RETRY_ONCE)``: a stage's one retry resumes it (finished views are skipped); bad input is
+#: not computed twice.
+RETRY_ONCE: dict[str, Any] = {"retries": 1, "retry_condition_fn": retry_unless_bad_input}
+
+
 def load_profile(path: str | os.PathLike | None = None) -> Profile:
     """Read an execution profile; ``None`` means ``$BTF_CLUSTER_CONFIG`` or the default."""
     path = Path(path or os.environ.get("BTF_CLUSTER_CONFIG") or DEFAULT_PROFILE)

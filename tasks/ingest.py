@@ -17,6 +17,12 @@ With a :class:`tasks.radiometric.Calibration` (``btf ingest --white``) the
 textures are divided by each LED's gain from a white standard and mapped by
 the colour matrix; the store then holds ``led_gain`` (and ``colour_matrix``)
 and the attribute ``radiometric`` with their provenance.
+
+``overwrite`` never deletes a finished output first: an ingest that replaces
+the store at its output path writes a sibling staging store (:func:`staging_path`,
+``X.partial.zarr`` beside ``X.zarr``), which resumes like any output, and
+:func:`commit_staged` renames it over the old one once it is complete (and,
+in ``btf ingest``, checked).
 """
 
 from __future__ import annotations
@@ -24,6 +30,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import shutil
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -32,6 +39,7 @@ from typing import Any, Callable
 import numpy as np
 import zarr
 
+from btfcore.demultiplex import demultiplex_operator
 from btfcore.ingest import IngestSettings, lv_directions, process_view, view_window
 from tasks.radiometric import Calibration
 from tasks.store import CaptureStore, open_capture_store, to_json_attr
@@ -48,19 +56,136 @@ def ingest_hash(capture: CaptureStore, settings: IngestSettings, calibration: Ca
     return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:16]
 
 
+def staging_path(out: str | os.PathLike) -> Path:
+    """Where an ingest that replaces another ingest's output at ``out`` is built: ``X.partial.zarr``
+    beside ``X.zarr`` (same folder, so that :func:`commit_staged` is a rename)."""
+    out = Path(out)
+    return out.with_name(f"{out.stem}.partial{out.suffix}")
+
+
+def _trash_path(out: str | os.PathLike) -> Path:
+    """Where :func:`commit_staged` moves the replaced output until the new one is in place."""
+    out = Path(out)
+    return out.with_name(f"{out.stem}.replaced{out.suffix}")
+
+
+def _store_attrs(path: Path) -> dict[str, Any] | None:
+    """The attributes of the Zarr group at ``path``; ``None`` if nothing is there, ``{}`` if it is no group."""
+    if not path.exists():
+        return None
+    try:
+        return dict(zarr.open_group(str(path), mode="r", zarr_format=3).attrs)
+    except (OSError, ValueError):  # a file, a folder without zarr.json, an array
+        return {}
+
+
+def _finish_interrupted_commit(out: Path) -> None:
+    """Complete (or undo) a :func:`commit_staged` that was killed between its renames."""
+    trash, staging = _trash_path(out), staging_path(out)
+    if not trash.exists():
+        return
+    if not out.exists():
+        # the old output was moved aside: put the checked replacement in, or else the old one back
+        if (_store_attrs(staging) or {}).get("complete"):
+            os.rename(staging, out)
+        else:
+            os.rename(trash, out)
+    shutil.rmtree(trash, ignore_errors=True)
+
+
+def _ingest_target(out: Path, key: str, overwrite: bool) -> tuple[Path, bool]:
+    """The store this ingest writes and whether it is the staging store of a replacement.
+
+    The staging store when it holds this ingest (a killed replacement resumes, with or without
+    ``overwrite``) or when ``overwrite`` replaces whatever is at ``out`` (recomputed in full,
+    even an output of this ingest); else ``out`` itself when nothing is there or it is this
+    ingest (resumed, or left alone when complete).
+    """
+    _finish_interrupted_commit(out)
+    attrs, staging = _store_attrs(out), staging_path(out)
+    if (_store_attrs(staging) or {}).get("ingest_hash") == key:
+        return staging, True
+    if attrs is None:
+        return out, False
+    if overwrite:
+        return staging, True
+    if attrs.get("ingest_hash") == key:
+        return out, False
+    raise _refusal(out, attrs, key, f" (the new store is then built in {staging} and replaces {out.name} only "
+                                    "once it is complete and checked)")
+
+
+def _refusal(path: str | os.PathLike, attrs: dict[str, Any], key: str, note: str = "") -> FileExistsError:
+    """The error for an output path that holds something other than this ingest."""
+    what = (f"holds {'a complete' if attrs.get('complete') else 'an unfinished'} BTF store of another capture or "
+            f"settings (ingest_hash {attrs.get('ingest_hash')!r}, this run {key!r})" if attrs else
+            "exists and is not a BTF store")
+    return FileExistsError(f"{path} {what}; choose another --out or pass --overwrite{note}")
+
+
+def commit_staged(out: str | os.PathLike) -> Path:
+    """Put the complete staging store of ``out`` (:func:`staging_path`) in place of ``out``.
+
+    The old output is renamed aside, the staging store renamed to ``out``, and then the old one
+    deleted, so that at every moment one of them is whole; a commit killed in between is
+    finished by the next ingest into ``out``.
+
+    Raises
+    ------
+    FileNotFoundError
+        No staging store beside ``out``.
+    RuntimeError
+        The staging store is not complete (resume the ingest first).
+    """
+    out = Path(out)
+    staging, trash = staging_path(out), _trash_path(out)
+    attrs = _store_attrs(staging)
+    if attrs is None:
+        raise FileNotFoundError(f"{staging}: no staged ingest to put in place of {out}")
+    if not attrs.get("complete"):
+        raise RuntimeError(f"{staging}: the staged ingest is unfinished; run `btf ingest` again to resume it")
+    shutil.rmtree(trash, ignore_errors=True)        # left over from an earlier, interrupted commit
+    if out.exists():
+        os.rename(out, trash)
+    os.rename(staging, out)
+    shutil.rmtree(trash, ignore_errors=True)
+    return out
+
+
+def check_capture(capture_path: str | os.PathLike) -> CaptureStore:
+    """Open and validate a capture store for ingest, before any output is touched.
+
+    Raises
+    ------
+    tasks.store.CaptureStoreError
+        The store breaks its schema (every problem listed).
+    ValueError
+        Its illumination patterns cannot be demultiplexed into single LEDs.
+    """
+    capture = open_capture_store(capture_path)
+    try:
+        demultiplex_operator(capture.illumination)
+    except ValueError as exc:
+        raise ValueError(
+            f"{capture_path}: illumination ({capture.n_illum} patterns x {capture.n_leds} LEDs) cannot be "
+            f"demultiplexed: {exc}; the patterns must separate every LED (single LEDs or an S-matrix): fix the "
+            "store's illumination array or capture again with such patterns") from None
+    return capture
+
+
 def create_btf_store(path: str | os.PathLike, capture: CaptureStore, settings: IngestSettings, *,
                      overwrite: bool = False, calibration: Calibration | None = None) -> zarr.Group:
-    """Create the BTF store of an ingest, or reopen an unfinished one of the same ingest."""
+    """Create the BTF store of an ingest at ``path``, or reopen an unfinished one of the same ingest.
+
+    ``overwrite`` replaces a store of another ingest at ``path`` in place; :func:`ingest_capture`
+    passes it only for its staging store, never for a finished output.
+    """
     key = ingest_hash(capture, settings, calibration)
-    if Path(path).exists() and not overwrite:
-        group = zarr.open_group(str(path), mode="r+", zarr_format=3)
-        attrs = dict(group.attrs)
-        if attrs.get("ingest_hash") == key:
-            return group
-        state = "a complete" if attrs.get("complete") else "an unfinished"
-        raise FileExistsError(
-            f"{path} holds {state} BTF store of another capture or settings (ingest_hash "
-            f"{attrs.get('ingest_hash')!r}, this run {key!r}); choose another --out or pass --overwrite")
+    attrs = _store_attrs(Path(path))
+    if attrs is not None and attrs.get("ingest_hash") == key:
+        return zarr.open_group(str(path), mode="r+", zarr_format=3)
+    if attrs is not None and not overwrite:
+        raise _refusal(path, attrs, key)
     meta = capture.meta
     h, w = meta.texture_shape
     n_turn, n_cam, n_illum, n_leds = capture.n_turn, capture.n_cam, capture.n_illum, capture.n_leds
@@ -102,8 +227,17 @@ def ingest_view(capture_path: str, out_path: str, settings: IngestSettings, t: i
     meta, sensor = capture.meta, capture.meta.sensor
     window = view_window(capture.homography[t, c], capture.roi_shape, tuple(meta.texture_shape),
                          meta.sample_size_m, settings)
+    try:
+        raw = capture.raw[t, c, :, :, window[0], window[1]]
+    except (OSError, MemoryError):
+        raise                                   # the machine, not the data: worth a retry
+    except Exception as exc:                    # a chunk that does not decode to its shape
+        raise ValueError(
+            f"{capture_path}: raw[(t, c)=({t}, {c})] cannot be read ({type(exc).__name__}: {exc}): a chunk file "
+            "is corrupt or truncated, so the store is damaged; write the capture again "
+            "(btf simulate / btf import-raw)") from exc
     textures, valid = process_view(
-        capture.raw[t, c, :, :, window[0], window[1]], capture.exposure_time[t, c], capture.illumination,
+        raw, capture.exposure_time[t, c], capture.illumination,
         bayer_pattern=meta.bayer_pattern, black_level=meta.black_level, white_level=meta.white_level,
         homography=capture.homography[t, c], texture_shape=tuple(meta.texture_shape),
         sample_size_m=meta.sample_size_m, dark_frames=capture.dark_frames[c],
@@ -123,34 +257,46 @@ def ingest_view(capture_path: str, out_path: str, settings: IngestSettings, t: i
 def ingest_capture(capture_path: str | os.PathLike, out_path: str | os.PathLike, client: Any, *,
                    settings: IngestSettings = IngestSettings(), overwrite: bool = False,
                    calibration: Calibration | None = None,
-                   progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
-    """Ingest a capture store into a BTF store on a Dask cluster; resumes unfinished runs."""
+                   progress: Callable[[int, int], None] | None = None, commit: bool = True) -> dict[str, Any]:
+    """Ingest a capture store into a BTF store on a Dask cluster; resumes unfinished runs.
+
+    With ``overwrite``, the store at ``out_path`` (another ingest's, or this one's: it is recomputed) is
+    replaced only after the new one is complete: the views go to :func:`staging_path` (``"staged": True`` in the result), which
+    :func:`commit_staged` then renames over ``out_path``, here when ``commit`` or else by the caller
+    once it has checked the staged store (``btf ingest`` checks its valid fractions first). A staging
+    store of this ingest is resumed, with or without ``overwrite``.
+    """
     from distributed import as_completed
 
     start = time.perf_counter()
-    capture = open_capture_store(capture_path)
+    capture = check_capture(capture_path)
     if calibration is not None and calibration.led_gain is not None and len(calibration.led_gain) != capture.n_leds:
         raise ValueError(f"{calibration.info.get('white_standard')}: the white standard has "
                          f"{len(calibration.led_gain)} LEDs, the capture {capture_path} {capture.n_leds}; "
                          "calibrate with a white standard captured on the same dome")
-    group = create_btf_store(out_path, capture, settings, overwrite=overwrite, calibration=calibration)
-    if group.attrs.get("complete"):
-        return {"views_processed": 0, "views_skipped": capture.n_turn * capture.n_cam, "seconds": 0.0}
+    target, staged = _ingest_target(Path(out_path), ingest_hash(capture, settings, calibration), overwrite)
+    group = create_btf_store(target, capture, settings, overwrite=staged, calibration=calibration)
     written = group["written"][...]
-    pending = [(t, c) for t, c in np.ndindex(written.shape) if not written[t, c]]
-    futures = [client.submit(ingest_view, str(capture_path), str(out_path), settings, t, c, calibration, pure=False)
+    pending = [] if group.attrs.get("complete") else [(t, c) for t, c in np.ndindex(written.shape)
+                                                       if not written[t, c]]
+    futures = [client.submit(ingest_view, str(capture_path), str(target), settings, t, c, calibration, pure=False)
                for t, c in pending]
     for done, future in enumerate(as_completed(futures), 1):
         future.result()
         if progress is not None:
             progress(done, len(futures))
     if not group["written"][...].all():
-        raise RuntimeError(f"{out_path}: some views were not written; re-run to resume")
-    group.attrs["complete"] = True
+        raise RuntimeError(f"{target}: some views were not written; re-run to resume")
+    if not group.attrs.get("complete"):
+        group.attrs["complete"] = True
+    if staged and commit:
+        commit_staged(out_path)
+    result = {"views_processed": len(pending), "views_skipped": written.size - len(pending), "staged": staged}
+    if not pending:
+        return {**result, "seconds": 0.0}
     raw_bytes = int(np.prod(capture.raw.shape[:3])) * capture.n_exp * int(np.prod(capture.roi_shape)) * 2
     seconds = time.perf_counter() - start
-    return {"views_processed": len(pending), "views_skipped": written.size - len(pending),
-            "seconds": round(seconds, 3), "raw_mb_per_s": round(raw_bytes / 1e6 / max(seconds, 1e-9), 2)}
+    return {**result, "seconds": round(seconds, 3), "raw_mb_per_s": round(raw_bytes / 1e6 / max(seconds, 1e-9), 2)}
 
 
 def _relative_errors(est: np.ndarray, truth: np.ndarray) -> tuple[float, float]:

@@ -2,8 +2,8 @@
 
 Each bad input must exit 1 with a message that names the file, the array and
 the index and says what to do, and a finished output at ``--out`` must survive
-the failed run bit for bit, even with ``--overwrite``; where that does not hold
-yet, a strict xfail names the gap and the fix. An S-matrix order that does not
+the failed run bit for bit, even with ``--overwrite`` (which builds the new
+store beside it and replaces it only once complete and checked). An S-matrix order that does not
 exist reaches the user only as illumination patterns that cannot be
 demultiplexed (no command takes an order). The numerical layer's own checks are
 in tests/btfcore (test_hdr, test_rectify, test_hadamard, test_demultiplex,
@@ -174,29 +174,10 @@ def test_a_bracket_without_a_usable_pixel_is_an_error(corrupt, found, capture, t
     assert validity["listed"][0]["t_c_i"] == [0, 1, 3]
 
 
-#: Where `btf ingest` still loses a finished output or gives an unnamed error, and the fix (in
-#: tasks/ingest.py, which is being edited for speed: these tests document the gaps until then).
-_DELETES_FIRST = ("create_btf_store(overwrite=True) deletes the finished output before any view is read; "
-                  "fix: ingest into a sibling '<out>.partial' store and rename it over --out once complete "
-                  "and checked (no bracket with valid_fraction 0)")
-_OPERATOR_PER_VIEW = ("the demultiplexing operator is first built inside the view tasks, after --overwrite "
-                      "deleted the output, and the message is btfcore's alone; fix: in ingest_capture, before "
-                      "create_btf_store, call demultiplex_operator(capture.illumination) and re-raise its "
-                      "ValueError as '{capture}: illumination ({n_illum} patterns x {n_leds} LEDs) cannot be "
-                      "demultiplexed: ...'")
-_UNGUARDED_READ = ("ingest_view reads capture.raw[t, c] unguarded: a truncated chunk gives numpy's bare 'cannot "
-                   "reshape array of size 50 ...'; fix: re-raise read errors as '{capture}: raw[(t, c)=(0, 0)] "
-                   "cannot be read (...): a chunk file is corrupt or truncated; write the capture again', "
-                   "and " + _DELETES_FIRST)
-
-
 @pytest.mark.parametrize("corrupt, named", [
-    pytest.param(_white, "raw[(t, c, i)=(0, 1, 3)", id="all-saturated bracket",
-                 marks=pytest.mark.xfail(strict=True, reason=_DELETES_FIRST)),
-    pytest.param(_duplicate_pattern, "illumination (16 patterns x 16 LEDs)", id="inseparable patterns",
-                 marks=pytest.mark.xfail(strict=True, reason=_OPERATOR_PER_VIEW)),
-    pytest.param(_truncated_chunk, "raw[(t, c)=(0, 0)]", id="truncated raw chunk",
-                 marks=pytest.mark.xfail(strict=True, reason=_UNGUARDED_READ)),
+    pytest.param(_white, "raw[(t, c, i)=(0, 1, 3)", id="all-saturated bracket"),
+    pytest.param(_duplicate_pattern, "illumination (16 patterns x 16 LEDs)", id="inseparable patterns"),
+    pytest.param(_truncated_chunk, "raw[(t, c)=(0, 0)]", id="truncated raw chunk"),
 ])
 def test_a_failed_overwrite_names_the_input_and_keeps_the_finished_output(corrupt, named, capture, finished_copy,
                                                                           tmp_path, run_btf):
@@ -206,6 +187,62 @@ def test_a_failed_overwrite_names_the_input_and_keeps_the_finished_output(corrup
     assert code == 1, err
     assert f"{bad}: {named}" in err, err
     assert _digest(out, _report(out)) == before
+
+
+@pytest.mark.parametrize("rerun", [["--overwrite"], []], ids=["rerun with --overwrite", "rerun without"])
+def test_a_failed_staged_overwrite_keeps_the_output_and_the_rerun_resumes_and_replaces_it(
+        rerun, capture, finished, finished_copy, tmp_path, run_btf):
+    """--overwrite with another ingest (here a colour matrix) builds ``finished.partial.zarr``: a run that dies
+    part-way leaves the finished store and report bit for bit; the rerun resumes the staged store and only
+    then puts it, and its report, in place."""
+    out, before = finished_copy
+    matrix = tmp_path / "half.json"
+    matrix.write_text(json.dumps({"matrix": (0.5 * np.eye(3)).tolist()}))
+    bad = _corrupted(capture, tmp_path, _truncated_chunk)
+    code, _, err = run_btf("ingest", bad, "--out", out, "--overwrite", "--colour-matrix", matrix)
+    assert code == 1 and f"{bad}: raw[(t, c)=(0, 0)] cannot be read" in err, err
+    assert _digest(out, _report(out)) == before
+    staging = tmp_path / "finished.partial.zarr"
+    staged = zarr.open_group(str(staging), mode="r")
+    assert not staged.attrs["complete"] and staged["written"][0, 0] == 0
+    done = int(staged["written"][...].sum())
+
+    chunk = Path("raw", "c", "0", "0", "15", "0", "0", "0")
+    shutil.copy(capture / chunk, bad / chunk)                       # the capture is written again
+    code, printed, err = run_btf("ingest", bad, "--out", out, "--colour-matrix", matrix, *rerun)
+    assert code == 0, err
+    stage = json.loads(printed)["stages"]["ingest"]
+    assert stage["staged"] and (stage["views_skipped"], stage["views_processed"]) == (done, 4 - done), stage
+    assert sorted(p.name for p in tmp_path.iterdir() if "finished" in p.name) == \
+        ["finished.report.json", "finished.zarr"]                    # staging and the replaced store are gone
+    new, old = zarr.open_group(str(out), mode="r"), zarr.open_group(str(finished), mode="r")
+    assert new.attrs["complete"] and new.attrs["radiometric"]["colour_matrix"] == str(matrix)
+    np.testing.assert_allclose(new["btf"][...], 0.5 * old["btf"][...], rtol=1e-6)
+    assert json.loads(_report(out).read_text())["radiometric"]["colour_matrix"] == str(matrix)
+
+
+@pytest.mark.parametrize("error, runs", [(ValueError, 1), (FileExistsError, 1), (RuntimeError, 2)])
+def test_a_stage_retries_only_unexpected_errors(error, runs, runtime_session, monkeypatch):
+    """The ingest-side stages' one retry (``RETRY_ONCE``) is for a lost worker, not for bad input."""
+    from prefect import flow, task
+
+    from flows.runtime import RETRY_ONCE
+
+    monkeypatch.setenv("PREFECT_API_URL", runtime_session[1])
+    calls = []
+
+    @task(name="failing-stage", **RETRY_ONCE)
+    def stage():
+        calls.append(1)
+        raise error("failed")
+
+    @flow(name="retry-check")
+    def run():
+        stage()
+
+    with pytest.raises(error, match="failed"):
+        run()
+    assert len(calls) == runs
 
 
 # --------------------------------------------------------------------------- btf import-raw

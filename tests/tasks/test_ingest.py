@@ -58,6 +58,32 @@ def test_chunked_ingest_equals_in_memory_and_resumes(capture, tmp_path, dask_cli
         ingest_capture(capture, out, dask_client, settings=IngestSettings(demosaic="bilinear"))
 
 
+def test_overwrite_is_staged_and_a_commit_killed_between_its_renames_is_finished(capture, tmp_path, dask_client):
+    """overwrite builds ``btf.partial.zarr`` beside ``btf.zarr`` and renames it over the old output only
+    when complete; a commit killed after moving the old output aside is finished by the next ingest."""
+    from tasks.radiometric import Calibration
+
+    out = tmp_path / "btf.zarr"
+    ingest_capture(capture, out, dask_client)
+    old = zarr.open_group(str(out), mode="r")["btf"][...]
+    half = Calibration(colour_matrix=0.5 * np.eye(3), info={"colour_matrix": "half.json"})
+    staged = ingest_capture(capture, out, dask_client, overwrite=True, calibration=half, commit=False)
+    assert staged["staged"] and staged["views_processed"] == 4
+    np.testing.assert_array_equal(zarr.open_group(str(out), mode="r")["btf"][...], old)
+    assert zarr.open_group(str(tmp_path / "btf.partial.zarr"), mode="r").attrs["complete"]
+
+    out.rename(tmp_path / "btf.replaced.zarr")          # killed between commit_staged's two renames
+    again = ingest_capture(capture, out, dask_client, calibration=half)
+    assert not again["staged"] and again["views_processed"] == 0
+    assert [p.name for p in tmp_path.iterdir()] == ["btf.zarr"]
+    np.testing.assert_allclose(zarr.open_group(str(out), mode="r")["btf"][...], 0.5 * old, rtol=1e-6)
+
+    back = ingest_capture(capture, out, dask_client, overwrite=True)     # staged and committed in one call
+    assert back["staged"] and back["views_processed"] == 4
+    assert [p.name for p in tmp_path.iterdir()] == ["btf.zarr"]
+    np.testing.assert_array_equal(zarr.open_group(str(out), mode="r")["btf"][...], old)
+
+
 def test_single_and_multiplexed_reach_the_truth(capture):
     store = open_capture_store(capture)
     truth = store.truth["btf"][...]
