@@ -11,7 +11,9 @@ of raw input).
   process, the way a lab script would write them with OpenCV: per frame
   black subtraction and a hat-weighted merge in float32, `cv2.cvtColor`
   edge-aware demosaic on the merge quantised to 16 bit, `cv2.warpPerspective`
-  to the texture (INTER_LINEAR); timed on the first ``--peer-views`` views;
+  to the texture (INTER_LINEAR), each view's textures saved as one float32
+  ``.npy`` file (the ingest writes the same bytes to Zarr); timed on the
+  first ``--peer-views`` views;
 * peer ``opencv_window_loop_mb_per_s``: the same loop on only the window of
   each frame that the texture reads (what btf ingest processes,
   :func:`btfcore.rectify.support_window`), so that the ratio against it
@@ -20,8 +22,9 @@ of raw input).
   peer, measured in the same run. Issue 3's target is at least 2x the loop
   and at least 300 MB/s.
 
-The ingest is timed twice on the same cluster: ``cold`` includes the
-workers' first imports of the numerical stack, ``warm`` is the steady state.
+The contenders run in ``--repeats`` interleaved rounds on the same cluster
+and the medians are compared; the first round's ingest also includes the
+workers' first imports of the numerical stack (``ratio_first_run``).
 
 Usage: ``python benchmarks/bench_ingest.py [--peer-views N] [--capture STORE]``
 """
@@ -45,9 +48,10 @@ OPENCV_EA = {"RGGB": cv2.COLOR_BayerBG2RGB_EA, "BGGR": cv2.COLOR_BayerRG2RGB_EA,
              "GRBG": cv2.COLOR_BayerGB2RGB_EA, "GBRG": cv2.COLOR_BayerGR2RGB_EA}
 
 
-def opencv_loop(capture_path: str, n_views: int, window: bool = False) -> tuple[float, int]:
+def opencv_loop(capture_path: str, n_views: int, out_dir: Path, window: bool = False) -> tuple[float, int]:
     """Seconds and raw bytes of the per-image OpenCV loop over the first views (``window``:
-    only the part of each frame the texture reads, as btf ingest does)."""
+    only the part of each frame the texture reads, as btf ingest does). Each view's textures
+    are saved to ``out_dir`` as one float32 .npy file: the same bytes the ingest writes."""
     from btfcore.rectify import rectification_matrix, support_window, texture_homography
     from tasks.store import open_capture_store
 
@@ -57,6 +61,7 @@ def opencv_loop(capture_path: str, n_views: int, window: bool = False) -> tuple[
     black, white = float(meta.black_level), float(meta.white_level)
     n_bytes, start = 0, time.perf_counter()
     views = [(t, c) for t in range(store.n_turn) for c in range(store.n_cam)][:n_views]
+    textures = np.empty((store.n_illum, h, w, 3), np.float32)
     for t, c in views:
         G = texture_homography(store.homography[t, c], (h, w), meta.sample_size_m)
         rows, cols = slice(None), slice(None)
@@ -79,51 +84,61 @@ def opencv_loop(capture_path: str, n_views: int, window: bool = False) -> tuple[
             hdr = acc / np.maximum(wsum, 1e-6)
             scale = 65535.0 / max(float(hdr.max()), 1e-12)
             rgb = cv2.cvtColor(np.clip(hdr * scale, 0, 65535).astype(np.uint16), OPENCV_EA[meta.bayer_pattern])
-            cv2.warpPerspective(rgb.astype(np.float32) / scale, G, (w, h),
-                                flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+            textures[i] = cv2.warpPerspective(rgb.astype(np.float32) / scale, G, (w, h),
+                                              flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+        np.save(out_dir / f"view_t{t}_c{c}.npy", textures)
     return time.perf_counter() - start, n_bytes
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--peer-views", type=int, default=3, help="views timed for the OpenCV loop [default: 3]")
+    parser.add_argument("--repeats", type=int, default=3,
+                        help="interleaved rounds of (ingest, loop, window loop); medians are reported [default: 3]")
     parser.add_argument("--capture", default=None, help="reuse this bonn-dome2 capture store instead of simulating one")
     args = parser.parse_args()
     from flows.runtime import runtime
     from tasks.ingest import ingest_capture
     from tasks.simulate import SimulationConfig, simulate_database
+    from tasks.store import open_capture_store
 
     scratch = Path(tempfile.mkdtemp(prefix="bench-ingest-"))
+    ingest_s, loop, window = [], [], []
     try:
         config = SimulationConfig(device="bonn-dome2", n_materials=1, seed=0, classes=("leather",), n_turntable=1)
         with runtime() as (_profile, _url, client):
             capture = args.capture or simulate_database(config, scratch / "db", client).stores[0]
-            from tasks.store import open_capture_store
-
             raw_bytes = open_capture_store(capture).raw.nbytes
-            seconds = []
-            for run in ("cold", "warm"):
+            # rounds interleave the contenders, so that the machine's drifts hit both alike
+            for run in range(args.repeats):
                 start = time.perf_counter()
                 ingest_capture(capture, scratch / f"btf-{run}.zarr", client)
-                seconds.append(time.perf_counter() - start)
-        peer_s, peer_bytes = opencv_loop(capture, args.peer_views)
-        window_s, window_bytes = opencv_loop(capture, args.peer_views, window=True)
+                ingest_s.append(time.perf_counter() - start)
+                shutil.rmtree(scratch / f"btf-{run}.zarr")
+                loop.append(opencv_loop(capture, args.peer_views, scratch))   # the workers idle meanwhile
+                window.append(opencv_loop(capture, args.peer_views, scratch, window=True))
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
-    ingest_s = seconds[0]
-    ingest_rate, warm_rate = raw_bytes / 1e6 / seconds[0], raw_bytes / 1e6 / seconds[1]
-    peer_rate = peer_bytes / 1e6 / peer_s
-    window_rate = window_bytes / 1e6 / window_s
+
+    def rate(seconds: float, n_bytes: int) -> float:
+        return n_bytes / 1e6 / seconds
+
+    ingest_rates = [rate(s, raw_bytes) for s in ingest_s]
+    ingest_rate = float(np.median(ingest_rates))
+    peer_rate = float(np.median([rate(*r) for r in loop]))
+    window_rate = float(np.median([rate(*r) for r in window]))
     result = {
         "benchmark": "ingest", "date": time.strftime("%Y-%m-%d"),
         "machine": f"{platform.node()} {os.cpu_count()} cores", "command": "python benchmarks/bench_ingest.py",
         "load_average_1min_at_end": round(os.getloadavg()[0], 2),
         "data": "bonn-dome2, 1 turntable position, 1 leather, single-LED",
-        "raw_gb": round(raw_bytes / 1e9, 3), "ingest_s": round(ingest_s, 2),
-        "ingest_mb_per_s": round(ingest_rate, 1), "ingest_warm_s": round(seconds[1], 2),
-        "ingest_warm_mb_per_s": round(warm_rate, 1), "opencv_loop_mb_per_s": round(peer_rate, 1),
-        "opencv_window_loop_mb_per_s": round(window_rate, 1),
+        "raw_gb": round(raw_bytes / 1e9, 3), "ingest_s": [round(s, 2) for s in ingest_s],
+        "ingest_mb_per_s": [round(r, 1) for r in ingest_rates],
+        "opencv_loop_mb_per_s": [round(rate(*r), 1) for r in loop],
+        "opencv_window_loop_mb_per_s": [round(rate(*r), 1) for r in window],
+        "median_ingest_mb_per_s": round(ingest_rate, 1), "median_loop_mb_per_s": round(peer_rate, 1),
         "ratio": round(ingest_rate / peer_rate, 2), "ratio_window": round(ingest_rate / window_rate, 2),
+        "ratio_first_run": round(ingest_rates[0] / peer_rate, 2),
         "target": ">= 2x the loop and >= 300 MB/s",
     }
     print(json.dumps(result, indent=2))

@@ -75,6 +75,7 @@ def process_view(frames: np.ndarray, exposure_time: np.ndarray, patterns: np.nda
                  gain_e_per_dn: float | None = None, read_noise_e: float | None = None,
                  led_gain: np.ndarray | None = None, colour_matrix: np.ndarray | None = None,
                  window: tuple[slice, slice, sparse.csr_matrix] | None = None,
+                 out: np.ndarray | None = None,
                  settings: IngestSettings = IngestSettings()) -> tuple[np.ndarray, np.ndarray]:
     """Raw brackets of one view to demultiplexed, rectified linear RGB textures.
 
@@ -101,6 +102,10 @@ def process_view(frames: np.ndarray, exposure_time: np.ndarray, patterns: np.nda
         :func:`view_window` of this view, computed by the caller so that it
         reads only the window of the frames from storage; ``None``: computed
         here from whole frames.
+    out : (n_illum, h, w, 3) ndarray of float32, optional
+        Buffer for the rectified textures, reused across views by the caller
+        (first-touch of fresh memory is slow, DESIGN §5); a single-LED
+        capture's result is returned in it.
 
     Returns
     -------
@@ -125,7 +130,10 @@ def process_view(frames: np.ndarray, exposure_time: np.ndarray, patterns: np.nda
             raise ValueError(f"frames are {frames.shape[2:]} pixels but the view's window {row_win}, {col_win} "
                              f"is {expected}: pass frames[..., row_window, col_window]")
     win_shape = frames.shape[2:]
-    rectified = np.empty((n_illum, *texture_shape, 3), dtype=np.float32)
+    rectified = np.empty((n_illum, *texture_shape, 3), dtype=np.float32) if out is None else out
+    if rectified.shape != (n_illum, *texture_shape, 3) or rectified.dtype != np.float32:
+        raise ValueError(f"out must be a float32 array of shape {(n_illum, *texture_shape, 3)}, got "
+                         f"{rectified.dtype} {rectified.shape}")
     valid_fraction = np.empty(n_illum)
     dark_line = None
     if dark_frames is not None and dark_exposure_time is not None:
@@ -152,7 +160,8 @@ def process_view(frames: np.ndarray, exposure_time: np.ndarray, patterns: np.nda
             valid_fraction[i] = float(valid.mean())
         demosaic(hdr[:n], bayer_pattern, method=settings.demosaic, out=rgb[:n])
         # (n, pixels) -> (pixels, n) of RGB triplets and back: OpenCV's blocked transposes (3x numpy's
-        # strided copies), so that one sparse product rectifies the n images
+        # strided copies; demosaicking into a strided view was slower still), so that one sparse
+        # product rectifies the n images
         stack = cv2.transpose(rgb[:n].reshape(n, -1, 3)).reshape(*win_shape, 3 * n)
         out = apply_rectification(A, stack, texture_shape)                                # (h, w, 3n)
         rectified[first:first + n].reshape(n, -1, 3)[...] = cv2.transpose(out.reshape(-1, n, 3))

@@ -27,10 +27,12 @@ in ``btf ingest``, checked).
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
 import shutil
+import threading
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -38,6 +40,7 @@ from typing import Any, Callable
 
 import numpy as np
 import zarr
+from zarr.core.buffer import default_buffer_prototype
 
 from btfcore.demultiplex import demultiplex_operator
 from btfcore.ingest import IngestSettings, lv_directions, process_view, view_window
@@ -220,15 +223,45 @@ def create_btf_store(path: str | os.PathLike, capture: CaptureStore, settings: I
     return group
 
 
+@functools.lru_cache(maxsize=4)
+def _validated_capture(path: str, stamp: int) -> CaptureStore:
+    return open_capture_store(path)
+
+
+def open_capture_once(path: str) -> CaptureStore:
+    """Open and validate a capture once per worker process, not once per view (validation costs
+    about a tenth of a view's work); a change of the store's root metadata opens it again."""
+    root = Path(path) / "zarr.json"
+    stamp = root.stat().st_mtime_ns if root.is_file() else time.time_ns()   # a URL: not cached
+    return _validated_capture(str(path), stamp)
+
+
+_workspace = threading.local()
+
+
+def reused_buffer(name: str, shape: tuple[int, ...], dtype: Any) -> np.ndarray:
+    """A per-thread array that outlives the task: first-touch of fresh memory costs about a fifth
+    of a view's work here (DESIGN §5), so a worker's views share their large buffers."""
+    buffers = _workspace.__dict__.setdefault("buffers", {})
+    size, dtype = int(np.prod(shape)), np.dtype(dtype)
+    flat = buffers.get(name)
+    if flat is None or flat.size < size or flat.dtype != dtype:
+        flat = buffers[name] = np.empty(size, dtype)
+    return flat[:size].reshape(shape)
+
+
 def ingest_view(capture_path: str, out_path: str, settings: IngestSettings, t: int, c: int,
                 calibration: Calibration | None = None) -> tuple[int, int]:
     """Process one view of the capture and write its chunk of the BTF store."""
-    capture = open_capture_store(capture_path)
+    capture = open_capture_once(capture_path)
     meta, sensor = capture.meta, capture.meta.sensor
     window = view_window(capture.homography[t, c], capture.roi_shape, tuple(meta.texture_shape),
                          meta.sample_size_m, settings)
+    selection = (t, c, slice(None), slice(None), window[0], window[1])
+    raw = reused_buffer("raw", (capture.n_illum, capture.n_exp, window[0].stop - window[0].start,
+                                window[1].stop - window[1].start), capture.raw.dtype)
     try:
-        raw = capture.raw[t, c, :, :, window[0], window[1]]
+        capture.raw.get_basic_selection(selection, out=default_buffer_prototype().nd_buffer.from_numpy_array(raw))
     except (OSError, MemoryError):
         raise                                   # the machine, not the data: worth a retry
     except Exception as exc:                    # a chunk that does not decode to its shape
@@ -244,7 +277,8 @@ def ingest_view(capture_path: str, out_path: str, settings: IngestSettings, t: i
         dark_exposure_time=meta.dark_exposure_time, gain_e_per_dn=sensor.get("gain_e_per_dn"),
         read_noise_e=sensor.get("read_noise_e"), settings=settings,
         led_gain=None if calibration is None else calibration.led_gain,
-        colour_matrix=None if calibration is None else calibration.colour_matrix, window=window)
+        colour_matrix=None if calibration is None else calibration.colour_matrix, window=window,
+        out=reused_buffer("rectified", (capture.n_illum, *meta.texture_shape, 3), np.float32))
     group = zarr.open_group(out_path, mode="r+", zarr_format=3)
     n_leds = capture.n_leds
     row = (t * capture.n_cam + c) * n_leds
