@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any, Iterator
 
 import yaml
+from distributed import WorkerPlugin
 
 DEFAULT_PROFILE = Path(__file__).resolve().parents[1] / "infra" / "local.yaml"
 
@@ -197,6 +198,7 @@ def dask_client(profile: Profile, prefect_url: str | None = None) -> Iterator[An
                 raise RuntimeUnavailable(f"could not start the Dask cluster of {profile.path}: {exc}") from exc
             try:
                 with Client(cluster) as client:
+                    client.register_plugin(WorkerSetup(), name="btf-worker-setup")
                     yield client
             finally:
                 cluster.close()
@@ -206,6 +208,23 @@ def dask_client(profile: Profile, prefect_url: str | None = None) -> Iterator[An
                 os.environ.pop(key, None)
             else:
                 os.environ[key] = value
+
+
+class WorkerSetup(WorkerPlugin):
+    """Dask worker plugin: pins OpenCV to one thread (parallelism comes from Dask, DESIGN §5) and
+    imports the pipeline's numerical stack when a worker starts, so that the first task of a run
+    does not pay for it (about a second per worker on two cores)."""
+
+    modules = ("tasks.ingest", "tasks.simulate", "tasks.resample")
+
+    def setup(self, worker: Any) -> None:
+        import importlib
+
+        import cv2
+
+        cv2.setNumThreads(1)
+        for name in self.modules:
+            importlib.import_module(name)
 
 
 @contextlib.contextmanager

@@ -241,19 +241,6 @@ def test_psnr_at_least_opencv_edge_aware(images):
 # ----------------------------------------------------------------------------- chunking and buffers
 
 
-@pytest.mark.parametrize("method", sorted(OURS))
-@pytest.mark.parametrize("border", ["reflect", "mirror"])
-def test_chunked_evaluation_is_bitwise_identical(monkeypatch, method, border):
-    """Frames in groups and large frames in bands of rows give exactly the one-pass result."""
-    import btfcore.demosaic as dm
-
-    cfa = _hdr_cfa((3, 37, 51), seed=9, dtype=np.float32)
-    whole = demosaic(cfa, "GRBG", method, border=border)
-    for pixels in (60, 300, 2000):          # bands of 2 rows (smaller than the 5x5 filter), 4-row bands, frames
-        monkeypatch.setattr(dm, "_CHUNK_PIXELS", pixels)
-        np.testing.assert_array_equal(demosaic(cfa, "GRBG", method, border=border), whole)
-
-
 def test_out_buffer_is_filled_and_returned():
     cfa = _hdr_cfa((2, 10, 12), seed=10, dtype=np.float32)
     buf = np.full((2, 10, 12, 3), np.nan, dtype=np.float32)

@@ -25,6 +25,21 @@ def test_workers_share_the_one_prefect_server(runtime_session):
         assert env == {"PREFECT_API_URL": url, "OMP_NUM_THREADS": "1", "NUMPY_MADVISE_HUGEPAGE": "0"}
 
 
+def _worker_setup() -> tuple[int, bool]:
+    import sys
+
+    import cv2
+
+    return cv2.getNumThreads(), "tasks.ingest" in sys.modules
+
+
+def test_workers_pin_opencv_to_one_thread_and_start_with_the_pipeline_imported(runtime_session):
+    client = runtime_session[2]
+    assert set(client.run(_worker_setup).values()) == {(1, True)}
+    client.restart()                                 # a restarted worker gets the same setup
+    assert set(client.run(_worker_setup).values()) == {(1, True)}
+
+
 def test_default_profile_is_a_two_worker_local_cluster():
     profile = load_profile(DEFAULT_PROFILE)
     assert profile.cluster["kind"] == "local"
