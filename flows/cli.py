@@ -137,7 +137,9 @@ def build_parser() -> argparse.ArgumentParser:
                                    "docs/btf-store.md, 'Resampled stores') and, beside it, "
                                    "BTF2-stem.report.json (rows, outside-hull count, seconds). The input is never "
                                    "modified. An unfinished run resumes with the target views not yet written; a "
-                                   "store of another source or sampling at --out is never overwritten unless --overwrite.")
+                                   "store of another source or sampling at --out is never overwritten unless "
+                                   "--overwrite, which builds the new store beside it (BTF2-stem.partial.zarr) and "
+                                   "replaces the old one only once it is complete.")
     p.add_argument("btf", metavar="BTF", help="finished BTF store from `btf ingest` (.zarr)")
     p.add_argument("--out", required=True, metavar="BTF2", help="resampled BTF store to write (.zarr)")
     p.add_argument("--sampling", default="ubo2014", metavar="ubo2014|FILE.json",

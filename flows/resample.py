@@ -33,7 +33,10 @@ def resample_flow(btf: str, out: str, sampling: str, scheduler_address: str, ove
     """BTF store -> resampled BTF store on ``sampling`` ("ubo2014" or a JSON file).
 
     Writes ``<out stem>.report.json`` beside the output: rows, how many were
-    extrapolated outside the measured hull, and seconds.
+    extrapolated outside the measured hull, and seconds. With ``overwrite`` the
+    new store is built in ``<out stem>.partial.zarr`` and put in place of ``out``
+    once complete (inside the stage); the report is written only after that
+    swap, so a failed or killed run leaves the old store and report as they were.
     """
     stage = resample_stage(btf, out, sampling, scheduler_address, overwrite, progress)
     report = {"report": "btf-resample", "btf": btf, "out": out, "sampling": stage["sampling"],

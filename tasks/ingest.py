@@ -22,7 +22,8 @@ and the attribute ``radiometric`` with their provenance.
 the store at its output path writes a sibling staging store (:func:`staging_path`,
 ``X.partial.zarr`` beside ``X.zarr``), which resumes like any output, and
 :func:`commit_staged` renames it over the old one once it is complete (and,
-in ``btf ingest``, checked).
+in ``btf ingest``, checked); the machinery is :mod:`tasks.staging`, shared
+with ``btf resample``.
 """
 
 from __future__ import annotations
@@ -31,7 +32,6 @@ import functools
 import hashlib
 import json
 import os
-import shutil
 import threading
 import time
 from dataclasses import asdict
@@ -45,6 +45,8 @@ from zarr.core.buffer import default_buffer_prototype
 from btfcore.demultiplex import demultiplex_operator
 from btfcore.ingest import IngestSettings, lv_directions, process_view, view_window
 from tasks.radiometric import Calibration
+from tasks.staging import commit_staged as _commit_staged
+from tasks.staging import staged_target, staging_path, store_attrs
 from tasks.store import CaptureStore, open_capture_store, to_json_attr
 
 SCHEMA_NAME = "btf-texture"
@@ -59,63 +61,12 @@ def ingest_hash(capture: CaptureStore, settings: IngestSettings, calibration: Ca
     return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:16]
 
 
-def staging_path(out: str | os.PathLike) -> Path:
-    """Where an ingest that replaces another ingest's output at ``out`` is built: ``X.partial.zarr``
-    beside ``X.zarr`` (same folder, so that :func:`commit_staged` is a rename)."""
-    out = Path(out)
-    return out.with_name(f"{out.stem}.partial{out.suffix}")
-
-
-def _trash_path(out: str | os.PathLike) -> Path:
-    """Where :func:`commit_staged` moves the replaced output until the new one is in place."""
-    out = Path(out)
-    return out.with_name(f"{out.stem}.replaced{out.suffix}")
-
-
-def _store_attrs(path: Path) -> dict[str, Any] | None:
-    """The attributes of the Zarr group at ``path``; ``None`` if nothing is there, ``{}`` if it is no group."""
-    if not path.exists():
-        return None
-    try:
-        return dict(zarr.open_group(str(path), mode="r", zarr_format=3).attrs)
-    except (OSError, ValueError):  # a file, a folder without zarr.json, an array
-        return {}
-
-
-def _finish_interrupted_commit(out: Path) -> None:
-    """Complete (or undo) a :func:`commit_staged` that was killed between its renames."""
-    trash, staging = _trash_path(out), staging_path(out)
-    if not trash.exists():
-        return
-    if not out.exists():
-        # the old output was moved aside: put the checked replacement in, or else the old one back
-        if (_store_attrs(staging) or {}).get("complete"):
-            os.rename(staging, out)
-        else:
-            os.rename(trash, out)
-    shutil.rmtree(trash, ignore_errors=True)
-
-
 def _ingest_target(out: Path, key: str, overwrite: bool) -> tuple[Path, bool]:
-    """The store this ingest writes and whether it is the staging store of a replacement.
-
-    The staging store when it holds this ingest (a killed replacement resumes, with or without
-    ``overwrite``) or when ``overwrite`` replaces whatever is at ``out`` (recomputed in full,
-    even an output of this ingest); else ``out`` itself when nothing is there or it is this
-    ingest (resumed, or left alone when complete).
-    """
-    _finish_interrupted_commit(out)
-    attrs, staging = _store_attrs(out), staging_path(out)
-    if (_store_attrs(staging) or {}).get("ingest_hash") == key:
-        return staging, True
-    if attrs is None:
-        return out, False
-    if overwrite:
-        return staging, True
-    if attrs.get("ingest_hash") == key:
-        return out, False
-    raise _refusal(out, attrs, key, f" (the new store is then built in {staging} and replaces {out.name} only "
-                                    "once it is complete and checked)")
+    """The store this ingest writes and whether it is the staging store of a replacement
+    (:func:`tasks.staging.staged_target`, keyed by ``ingest_hash``)."""
+    note = (f" (the new store is then built in {staging_path(out)} and replaces {out.name} only once it is "
+            "complete and checked)")
+    return staged_target(out, "ingest_hash", key, overwrite, lambda attrs: _refusal(out, attrs, key, note))
 
 
 def _refusal(path: str | os.PathLike, attrs: dict[str, Any], key: str, note: str = "") -> FileExistsError:
@@ -127,32 +78,9 @@ def _refusal(path: str | os.PathLike, attrs: dict[str, Any], key: str, note: str
 
 
 def commit_staged(out: str | os.PathLike) -> Path:
-    """Put the complete staging store of ``out`` (:func:`staging_path`) in place of ``out``.
-
-    The old output is renamed aside, the staging store renamed to ``out``, and then the old one
-    deleted, so that at every moment one of them is whole; a commit killed in between is
-    finished by the next ingest into ``out``.
-
-    Raises
-    ------
-    FileNotFoundError
-        No staging store beside ``out``.
-    RuntimeError
-        The staging store is not complete (resume the ingest first).
-    """
-    out = Path(out)
-    staging, trash = staging_path(out), _trash_path(out)
-    attrs = _store_attrs(staging)
-    if attrs is None:
-        raise FileNotFoundError(f"{staging}: no staged ingest to put in place of {out}")
-    if not attrs.get("complete"):
-        raise RuntimeError(f"{staging}: the staged ingest is unfinished; run `btf ingest` again to resume it")
-    shutil.rmtree(trash, ignore_errors=True)        # left over from an earlier, interrupted commit
-    if out.exists():
-        os.rename(out, trash)
-    os.rename(staging, out)
-    shutil.rmtree(trash, ignore_errors=True)
-    return out
+    """Put the complete staged ingest of ``out`` (:func:`staging_path`) in place of ``out``
+    (:func:`tasks.staging.commit_staged`)."""
+    return _commit_staged(out, "ingest")
 
 
 def check_capture(capture_path: str | os.PathLike) -> CaptureStore:
@@ -184,7 +112,7 @@ def create_btf_store(path: str | os.PathLike, capture: CaptureStore, settings: I
     passes it only for its staging store, never for a finished output.
     """
     key = ingest_hash(capture, settings, calibration)
-    attrs = _store_attrs(Path(path))
+    attrs = store_attrs(path)
     if attrs is not None and attrs.get("ingest_hash") == key:
         return zarr.open_group(str(path), mode="r+", zarr_format=3)
     if attrs is not None and not overwrite:

@@ -12,7 +12,9 @@ written by one Dask task per group of target views: a task reads only the
 source rows its rows of ``W`` use (chunk by chunk, so only the source views it
 needs), computes ``B_dst = W B_src`` for its views with one sparse product,
 writes each view's chunk and then the view's ``written`` marker. The input
-store is never modified. Layout: docs/btf-store.md, "Resampled stores".
+store is never modified; a finished output is replaced (``overwrite``) only
+by a complete one, built beside it (:mod:`tasks.staging`). Layout:
+docs/btf-store.md, "Resampled stores".
 """
 
 from __future__ import annotations
@@ -39,6 +41,7 @@ from btfcore.resample import (
     unique_directions,
 )
 from tasks.ingest import SCHEMA_NAME, SCHEMA_VERSION
+from tasks.staging import commit_staged, staged_target, staging_path, store_attrs, trash_path
 from tasks.store import to_json_attr
 
 #: The built-in target sampling.
@@ -245,19 +248,9 @@ def resample_hash(source_attrs: dict, sampling: Sampling) -> str:
     return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:16]
 
 
-def _existing(path: str | os.PathLike, key: str, overwrite: bool) -> zarr.Group | None:
-    """The store at ``path`` if it is a resampling with hash ``key``; None if there is none (or
-    ``overwrite``); FileExistsError for anything else."""
-    if overwrite or not Path(path).exists() or (Path(path).is_dir() and not any(Path(path).iterdir())):
-        return None
-    try:
-        group = zarr.open_group(str(path), mode="r+", zarr_format=3)
-        attrs = dict(group.attrs)
-    except (OSError, ValueError, TypeError):
-        attrs, group = {}, None
-    if group is not None and attrs.get("resample_hash") == key:
-        return group
-    if group is None:
+def _refusal(path: Path, attrs: dict[str, Any], key: str) -> FileExistsError:
+    """The error for an ``--out`` that holds something other than this resampling."""
+    if not attrs:
         what = "something that is not a Zarr store"
     elif "resample_hash" not in attrs:
         what = f"a Zarr store that is not a resampled BTF store (schema {attrs.get('schema')!r})"
@@ -265,7 +258,16 @@ def _existing(path: str | os.PathLike, key: str, overwrite: bool) -> zarr.Group 
         state = "a complete" if attrs.get("complete") else "an unfinished"
         what = (f"{state} resampled BTF store of another source or sampling (resample_hash "
                 f"{attrs['resample_hash']!r}, this run {key!r})")
-    raise FileExistsError(f"{path} holds {what}; choose another --out or pass --overwrite")
+    return FileExistsError(f"{path} holds {what}; choose another --out or pass --overwrite (the new store is "
+                           f"then built in {staging_path(path)} and replaces {path.name} only once it is complete)")
+
+
+def _resample_target(out: Path, key: str, overwrite: bool) -> tuple[Path, bool]:
+    """The store this resampling writes and whether it is the staging store of a replacement
+    (:func:`tasks.staging.staged_target`, keyed by ``resample_hash``); an empty folder at ``out``
+    counts as nothing there (it is replaced, as with ``overwrite``)."""
+    empty = out.is_dir() and not any(out.iterdir())
+    return staged_target(out, "resample_hash", key, overwrite or empty, lambda attrs: _refusal(out, attrs, key))
 
 
 def _whole(group: zarr.Group, name: str, data: np.ndarray) -> None:
@@ -409,8 +411,11 @@ def _view_groups(W: sp.csr_matrix, views: Sequence[int], n_l: int, row_bytes: in
 
 def check_inputs(source_path: str | os.PathLike, out_path: str | os.PathLike,
                  sampling: str | os.PathLike | Sampling, *,
-                 overwrite: bool = False) -> tuple[zarr.Group, Sampling, str, zarr.Group | None]:
+                 overwrite: bool = False) -> tuple[zarr.Group, Sampling, str, Path, bool]:
     """Check a resampling's inputs before any work: the source store, the sampling and ``--out``.
+
+    A commit into ``out_path`` killed between its renames is finished first
+    (:func:`tasks.staging.finish_interrupted_commit`).
 
     Returns
     -------
@@ -419,24 +424,31 @@ def check_inputs(source_path: str | os.PathLike, out_path: str | os.PathLike,
     sampling : Sampling
     key : str
         :func:`resample_hash` of the two.
-    existing : zarr.Group or None
-        The store at ``out_path`` when it is this resampling (finished or not).
+    target : Path
+        The store to write: ``out_path``, or its staging store
+        (:func:`tasks.staging.staging_path`) when this run replaces the output
+        there (``overwrite``) or resumes such a replacement.
+    staged : bool
+        ``target`` is the staging store.
 
     Raises
     ------
     FileNotFoundError, ValueError
         As :func:`open_source` and :func:`load_sampling`; ValueError when
-        ``out_path`` is the source itself.
+        ``out_path`` (or its staging or replaced store) is the source itself.
     FileExistsError
         Something else is at ``out_path`` and not ``overwrite``.
     """
     source = open_source(source_path)
-    if Path(out_path).resolve() == Path(source_path).resolve():
-        raise ValueError(f"--out {out_path} is the source store; resampling never modifies its input, "
-                         "choose another --out")
+    out = Path(out_path)
+    src = Path(source_path).resolve()
+    if src in {p.resolve() for p in (out, staging_path(out), trash_path(out))}:
+        what = ("is the source store" if out.resolve() == src else
+                f"would stage its replacement in the source {src.name}")
+        raise ValueError(f"--out {out_path} {what}; resampling never modifies its input, choose another --out")
     sampling = sampling if isinstance(sampling, Sampling) else load_sampling(sampling)
     key = resample_hash(dict(source.attrs), sampling)
-    return source, sampling, key, _existing(out_path, key, overwrite)
+    return (source, sampling, key, *_resample_target(out, key, overwrite))
 
 
 def resample_store(source_path: str | os.PathLike, out_path: str | os.PathLike, client: Any, *,
@@ -454,14 +466,20 @@ def resample_store(source_path: str | os.PathLike, out_path: str | os.PathLike, 
     sampling : {"ubo2014"}, path-like or Sampling
         Target sampling: UBO2014 151 x 151, or a JSON file (:func:`load_sampling`).
     overwrite : bool
-        Replace a store of another source or sampling at ``out_path``.
+        Replace the store at ``out_path`` (of another source or sampling, or this
+        one's: it is recomputed), but only once the new one is complete: it is
+        built in the staging store ``X.partial.zarr`` beside ``X.zarr``
+        (:func:`tasks.staging.staging_path`) and then renamed over the old one
+        (:func:`tasks.staging.commit_staged`). A staging store of this resampling
+        is resumed, with or without ``overwrite``.
     progress : callable, optional
         ``progress(views_done, views_total)``.
 
     Returns
     -------
     dict
-        ``rows``, ``views``, ``lights``, ``views_processed``, ``views_skipped``,
+        ``rows``, ``views``, ``lights``, ``sampling``, ``staged`` (the run went
+        through the staging store), ``views_processed``, ``views_skipped``,
         ``tasks``, ``source_chunks_read``, ``outside_hull_rows`` (and by
         kind), ``weights_seconds``, ``seconds``.
 
@@ -473,11 +491,16 @@ def resample_store(source_path: str | os.PathLike, out_path: str | os.PathLike, 
     from distributed import as_completed
 
     start = time.perf_counter()
-    source, sampling, key, group = check_inputs(source_path, out_path, sampling, overwrite=overwrite)
+    source, sampling, key, target, staged = check_inputs(source_path, out_path, sampling, overwrite=overwrite)
     n_v, n_l = sampling.n_v, sampling.n_l
-    summary = {"rows": n_v * n_l, "views": n_v, "lights": n_l, "sampling": sampling.name}
-    if group is not None and group.attrs.get("complete"):
-        return {**summary, **_outside_counts(group), "views_processed": 0, "views_skipped": n_v, "tasks": 0,
+    summary = {"rows": n_v * n_l, "views": n_v, "lights": n_l, "sampling": sampling.name, "staged": staged}
+    group = (zarr.open_group(str(target), mode="r+", zarr_format=3)
+             if (store_attrs(target) or {}).get("resample_hash") == key else None)
+    if group is not None and group.attrs.get("complete"):     # done; a staged one was killed before its commit
+        summary.update(_outside_counts(group))
+        if staged:
+            commit_staged(out_path, "resample")
+        return {**summary, "views_processed": 0, "views_skipped": n_v, "tasks": 0,
                 "source_chunks_read": 0, "weights_seconds": 0.0, "seconds": round(time.perf_counter() - start, 3)}
     light_dir, view_dir, _ = sampling.rows()
     src_light, src_view = source["light_dir"][...], source["view_dir"][...]
@@ -489,13 +512,13 @@ def resample_store(source_path: str | os.PathLike, out_path: str | os.PathLike, 
                          "re-run `btf ingest` into a new --out") from None
     weights_seconds = time.perf_counter() - start
     if group is None:
-        group = create_resampled_store(out_path, source_path, source, sampling, key, outside_view, outside_light)
+        group = create_resampled_store(target, source_path, source, sampling, key, outside_view, outside_light)
     written = group["written"][...]
     pending = [int(v) for v in np.flatnonzero(written == 0)]
     row_bytes = int(np.prod(source["btf"].shape[1:])) * 4
     slots = max(1, sum(client.nthreads().values()))
     groups = _view_groups(W, pending, n_l, row_bytes, max_views=max(1, math.ceil(len(pending) / (4 * slots))))
-    futures = [client.submit(resample_views, str(source_path), str(out_path), views,
+    futures = [client.submit(resample_views, str(source_path), str(target), views,
                              W[(np.asarray(views)[:, None] * n_l + np.arange(n_l)).ravel()], pure=False)
                for views in groups]
     done, chunks_read = 0, 0
@@ -506,9 +529,12 @@ def resample_store(source_path: str | os.PathLike, out_path: str | os.PathLike, 
         if progress is not None:
             progress(done, len(pending))
     if not group["written"][...].all():
-        raise RuntimeError(f"{out_path}: some views were not written; re-run to resume")
+        raise RuntimeError(f"{target}: some views were not written; re-run to resume")
     group.attrs["complete"] = True
-    return {**summary, **_outside_counts(group), "views_processed": len(pending),
+    summary.update(_outside_counts(group))
+    if staged:
+        commit_staged(out_path, "resample")
+    return {**summary, "views_processed": len(pending),
             "views_skipped": n_v - len(pending), "tasks": len(groups), "source_chunks_read": chunks_read,
             "weights_seconds": round(weights_seconds, 3), "seconds": round(time.perf_counter() - start, 3)}
 

@@ -4,6 +4,7 @@ under real Prefect and a real LocalCluster; bad input exits 1 with the reason.""
 from __future__ import annotations
 
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -52,3 +53,49 @@ def test_cli_resamples_onto_ubo2014_and_names_bad_input(tiny_btf, tmp_path, runt
     assert main(["resample", str(tiny_btf), "--out", str(out), "--sampling", str(good)]) == 1
     assert "choose another --out or pass --overwrite" in capsys.readouterr().err
     assert zarr.open_group(str(out), mode="r", zarr_format=3)["btf"].shape[0] == 22801      # left alone
+
+
+def _files(store, report):
+    """The bytes of the report and of every file of the store, by path: equal dicts are bit-identical."""
+    return {path: path.read_bytes() for path in [report, *sorted(store.rglob("*"))] if path.is_file()}
+
+
+@pytest.mark.parametrize("rerun", [["--overwrite"], []], ids=["rerun with --overwrite", "rerun without"])
+def test_a_failed_staged_overwrite_keeps_store_and_report_and_the_rerun_swaps_them(rerun, tiny_btf, tmp_path,
+                                                                                    run_btf):
+    """`btf resample --overwrite` from a source with a NaN in one view fails part-way (exit 1): the finished
+    store and its report stay bit for bit; once the source is fixed, the rerun, with or without --overwrite,
+    resumes ``r.partial.zarr``, swaps it in and only then writes the report."""
+    src = tmp_path / "src.zarr"
+    shutil.copytree(tiny_btf, src)
+    group = zarr.open_group(str(src), mode="r+", zarr_format=3)
+    own = tmp_path / "own.json"          # the source's own directions: target view v reads source view v only
+    own.write_text(json.dumps({"light_dirs": group["light_dir"][:16].tolist(),
+                               "view_dirs": group["view_dir"][::16].tolist()}))
+    coarse = tmp_path / "coarse.json"
+    coarse.write_text(json.dumps({"light_dirs": group["light_dir"][:5].tolist(),
+                                  "view_dirs": group["view_dir"][::32].tolist()}))
+    out, report = tmp_path / "out" / "r.zarr", tmp_path / "out" / "r.report.json"
+    out.parent.mkdir()
+    assert run_btf("resample", src, "--out", out, "--sampling", coarse)[0] == 0
+    before = _files(out, report)
+
+    good = group["btf"][48:64]
+    bad = good.copy()
+    bad[:, 0] = np.nan                                              # view 3, texel row 0
+    group["btf"][48:64] = bad
+    code, _, err = run_btf("resample", src, "--out", out, "--sampling", own, "--overwrite")
+    assert code == 1 and f"{src}: btf[48, 0, 0, 0] = nan" in err, err
+    assert _files(out, report) == before
+    staged = zarr.open_group(str(tmp_path / "out" / "r.partial.zarr"), mode="r", zarr_format=3)
+    assert not staged.attrs["complete"] and staged["written"][3] == 0
+    done = int(staged["written"][...].sum())
+
+    group["btf"][48:64] = good                                      # the source is written again
+    code, printed, err = run_btf("resample", src, "--out", out, "--sampling", own, *rerun)
+    assert code == 0, err
+    stage = json.loads(printed)["stages"]["resample"]
+    assert stage["staged"] and (stage["views_skipped"], stage["views_processed"]) == (done, 4 - done), stage
+    assert sorted(p.name for p in out.parent.iterdir()) == ["r.report.json", "r.zarr"]
+    assert json.loads(report.read_text())["rows"] == 64 and json.loads(report.read_text())["sampling"] == "own.json"
+    np.testing.assert_allclose(zarr.open_group(str(out), mode="r")["btf"][...], group["btf"][...], rtol=1e-6)

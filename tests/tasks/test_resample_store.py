@@ -1,5 +1,5 @@
 """BTF store -> resampled BTF store on a real LocalCluster: chunked equals in-memory, identity,
-smooth functions, resumption and refusals, bad sampling files."""
+smooth functions, resumption and refusals, staged overwrite, bad sampling files."""
 
 from __future__ import annotations
 
@@ -19,7 +19,9 @@ from btfcore.resample import (
     ubo2014_directions,
 )
 from btfcore.simulate.devices import get_device
+import tasks.resample
 from tasks.resample import load_sampling, resample_store
+from tasks.staging import staging_path, trash_path
 
 
 def _synthetic_store(path, light, view, data, rows_per_view, complete=True):
@@ -169,6 +171,84 @@ def test_resumes_bit_identically_and_refuses_other_runs(tiny_btf, tmp_path, dask
     # never the input itself
     with pytest.raises(ValueError, match="is the source store"):
         resample_store(tiny_btf, tiny_btf, dask_client, sampling=coarse, overwrite=True)
+
+
+class Killed(BaseException):
+    """What a SIGKILL would do to the run at that point: stop it, nothing caught."""
+
+
+def _files(root):
+    """Every file under ``root`` by relative path with its bytes: equal dicts are bit-identical stores."""
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture()
+def killed_overwrite(tiny_btf, tmp_path, dask_client, monkeypatch):
+    """``r.zarr``, a finished resampling onto 19 x 19 UBO directions, its files, and an ``overwrite`` onto
+    another sampling (5 views x 7 lights) killed after its views were written, before the swap."""
+    U = ubo2014_directions()
+    coarse = _sampling_file(tmp_path / "coarse.json", U[:19], U[:19])
+    other = _sampling_file(tmp_path / "other.json", U[:7], U[:5])
+    out = tmp_path / "out" / "r.zarr"
+    out.parent.mkdir()
+    resample_store(tiny_btf, out, dask_client, sampling=coarse)
+    before = _files(out)
+
+    def kill(*args):
+        raise Killed()
+
+    with monkeypatch.context() as patch:
+        patch.setattr(tasks.resample, "commit_staged", kill)
+        with pytest.raises(Killed):
+            resample_store(tiny_btf, out, dask_client, sampling=other, overwrite=True)
+    assert _files(out) == before and _read(staging_path(out)).attrs["complete"]
+    return out, before, coarse, other
+
+
+@pytest.mark.parametrize("rerun", [{"overwrite": True}, {}], ids=["rerun with overwrite", "rerun without"])
+def test_a_killed_staged_overwrite_keeps_the_output_and_the_rerun_resumes_and_swaps(
+        rerun, killed_overwrite, tiny_btf, tmp_path, dask_client):
+    """overwrite builds ``r.partial.zarr`` beside ``r.zarr``; killed part-way (two views' data and markers
+    lost, as a kill leaves them) ``r.zarr`` is bit for bit as it was; the rerun resumes the staged store, with
+    or without overwrite, and only then renames it over ``r.zarr``, leaving no staging or replaced store."""
+    out, before, _, other = killed_overwrite
+    staged = zarr.open_group(str(staging_path(out)), mode="r+", zarr_format=3)
+    for v in (1, 3):
+        staged["btf"][v * 7:(v + 1) * 7] = 0.0
+        staged["written"][v] = 0
+    staged.attrs["complete"] = False
+    assert _files(out) == before
+
+    again = resample_store(tiny_btf, out, dask_client, sampling=other, **rerun)
+    assert again["staged"] and (again["views_processed"], again["views_skipped"]) == (2, 3), again
+    assert sorted(p.name for p in out.parent.iterdir()) == ["r.zarr"]
+    clean = resample_store(tiny_btf, tmp_path / "clean.zarr", dask_client, sampling=other)
+    assert not clean["staged"]
+    np.testing.assert_array_equal(_read(out)["btf"][...], _read(tmp_path / "clean.zarr")["btf"][...])
+    assert _read(out).attrs["complete"] and _read(out).attrs["sampling"] == "other.json"
+
+
+def test_a_resample_commit_killed_between_its_renames_is_finished_or_undone(killed_overwrite, tiny_btf,
+                                                                             dask_client):
+    """A kill after ``r.zarr`` was renamed to ``r.replaced.zarr``: the next run into ``r.zarr`` puts the
+    complete staged store in place, or the old store back when the staged one is unfinished."""
+    out, before, coarse, other = killed_overwrite
+    staged = zarr.open_group(str(staging_path(out)), mode="r+", zarr_format=3)
+    staged.attrs["complete"] = False
+    out.rename(trash_path(out))
+    kept = resample_store(tiny_btf, out, dask_client, sampling=coarse)      # the old one is back, untouched
+    assert not kept["staged"] and kept["views_processed"] == 0 and _files(out) == before
+    assert sorted(p.name for p in out.parent.iterdir()) == ["r.partial.zarr", "r.zarr"]
+
+    staged.attrs["complete"] = True
+    out.rename(trash_path(out))
+    swapped = resample_store(tiny_btf, out, dask_client, sampling=other)
+    assert not swapped["staged"] and swapped["views_processed"] == 0
+    assert sorted(p.name for p in out.parent.iterdir()) == ["r.zarr"] and _read(out)["btf"].shape[0] == 35
+    # a source where a replacement of --out would be staged is never written
+    source = out.rename(out.with_name("s.partial.zarr"))
+    with pytest.raises(ValueError, match=r"--out .*s\.zarr would stage its replacement in the source s\.partial"):
+        resample_store(source, out.with_name("s.zarr"), dask_client, sampling=coarse, overwrite=True)
 
 
 def test_refuses_bad_sources(turntable, tmp_path, dask_client):
