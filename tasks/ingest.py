@@ -104,6 +104,30 @@ def check_capture(capture_path: str | os.PathLike) -> CaptureStore:
     return capture
 
 
+#: Bytes of one chunk of the ``btf`` array that :func:`band_rows` aims for.
+CHUNK_BYTES = 4 << 20
+
+
+def band_rows(n_leds: int, h: int, w: int) -> int:
+    """Texture rows per chunk of ``btf``: one view's LEDs x a band of rows, about :data:`CHUNK_BYTES`.
+
+    A view task writes every band of its view (whole chunks, so parallel views never share one),
+    and the model fitting streams bands of texels across all views without reading whole views.
+    """
+    return int(min(h, max(1, CHUNK_BYTES // (n_leds * w * 3 * 4))))
+
+
+def material_of(capture: CaptureStore) -> dict[str, Any] | None:
+    """``{"material_id", "class"}`` of a simulated capture (from its ground truth); ``None`` for a
+    capture of a real sample, whose class the model database is told separately."""
+    if not capture.has_truth:
+        return None
+    material = dict(capture.truth.attrs.get("material") or {})
+    if not material.get("class_name"):
+        return None
+    return {"material_id": material.get("material_id", Path(capture.path).stem), "class": material["class_name"]}
+
+
 def create_btf_store(path: str | os.PathLike, capture: CaptureStore, settings: IngestSettings, *,
                      overwrite: bool = False, calibration: Calibration | None = None) -> zarr.Group:
     """Create the BTF store of an ingest at ``path``, or reopen an unfinished one of the same ingest.
@@ -121,7 +145,7 @@ def create_btf_store(path: str | os.PathLike, capture: CaptureStore, settings: I
     h, w = meta.texture_shape
     n_turn, n_cam, n_illum, n_leds = capture.n_turn, capture.n_cam, capture.n_illum, capture.n_leds
     group = zarr.open_group(str(path), mode="w", zarr_format=3)
-    group.create_array("btf", shape=(n_turn * n_cam * n_leds, h, w, 3), chunks=(n_leds, h, w, 3),
+    group.create_array("btf", shape=(n_turn * n_cam * n_leds, h, w, 3), chunks=(n_leds, band_rows(n_leds, h, w), w, 3),
                        dtype="float32", fill_value=0.0, compressors=None,
                        dimension_names=["lv", "tex_row", "tex_col", "channel"])
     light_dir, view_dir, lv_index = lv_directions(meta.led_position, meta.camera_R, meta.camera_t,
@@ -146,7 +170,7 @@ def create_btf_store(path: str | os.PathLike, capture: CaptureStore, settings: I
         "radiometric": None if calibration is None else calibration.info,
         "lv_order": ["turntable", "camera", "light"], "texture_shape": [h, w],
         "source": str(capture.path), "ingest_hash": key, "settings": asdict(settings), "complete": False,
-        "turntable_cameras_leds": [n_turn, n_cam, n_leds],
+        "turntable_cameras_leds": [n_turn, n_cam, n_leds], "material": material_of(capture),
     }))
     return group
 
