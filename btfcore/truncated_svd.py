@@ -1,0 +1,185 @@
+"""Truncated SVD of a BTF matrix streamed over column blocks: Gram route, randomized, EM-PCA.
+
+The per-material bases of the model database (DESIGN §2 stage 8; thesis
+paper 1, §4.1) are the leading left singular vectors ``U`` and values
+``sigma`` of ``B`` (``(n_lv, n_tx)``, rows light/view pairs). Three methods
+read ``B`` as column blocks, never whole, and accumulate in float64:
+
+* ``'gram'``: :math:`G = \\sum_j B_j B_j^T` and its top-k eigenpairs. Exact to
+  float64 rounding and one pass, but ``G`` takes :math:`8 n_{lv}^2` bytes and
+  the pass costs :math:`n_{lv}^2 n_{tx}` multiply-adds (in float64).
+* ``'randomized'``: Halko et al.'s range finder with ``oversample`` extra
+  vectors and ``n_iter`` power iterations, QR re-orthonormalised every pass
+  (DESIGN §5: plain power iterations lose accuracy in float32).
+* ``'empca'``: :func:`btfcore.empca.empca`, iterated to a tolerance.
+
+``'auto'`` picks ``'gram'`` when ``G`` fits ``memory_bytes`` and its pass costs
+no more arithmetic than the randomized passes, else ``'randomized'``
+(:func:`choose_method`).
+
+References
+----------
+.. [1] N. Halko, P.-G. Martinsson and J. A. Tropp, "Finding structure with
+   randomness: probabilistic algorithms for constructing approximate matrix
+   decompositions", SIAM Review 53(2), 2011, Alg. 4.4 and 5.1.
+.. [2] S. Roweis, "EM algorithms for PCA and SPCA", NIPS 10, 1998.
+.. [3] The thesis (``reference/000_07a399c75a6bdea8.txt``), paper 1 §4.1.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import linalg
+
+from ._lowrank import RANK_RTOL, Blocks, TruncatedSVD, as_block_source, check_int, check_k, check_rank, \
+    fix_signs, for_each_block
+from .empca import block_power_iteration, check_iteration_args, empca
+
+__all__ = ["METHODS", "TruncatedSVD", "choose_method", "column_blocks", "truncated_svd"]
+
+#: Methods of :func:`truncated_svd`.
+METHODS: tuple[str, ...] = ("auto", "gram", "randomized", "empca")
+
+
+def column_blocks(B: np.ndarray, width: int) -> list[np.ndarray]:
+    """Split an in-memory ``(n_lv, n_tx)`` matrix into column blocks (views) of ``width`` columns."""
+    check_int(width, "width")
+    return [B[:, i:i + width] for i in range(0, B.shape[1], width)]
+
+
+def choose_method(n_lv: int, k: int, *, memory_bytes: int, oversample: int = 10, n_iter: int = 4) -> str:
+    """The rule of ``method='auto'``: ``'gram'`` or ``'randomized'``.
+
+    ``'gram'`` when :math:`8 n_{lv}^2 \\le` ``memory_bytes`` (the float64 Gram
+    matrix) and :math:`n_{lv} \\le 2 l (q + 2)`, ``l = k + oversample``,
+    ``q = n_iter``: its one float64 pass of :math:`n_{lv}^2 n_{tx}`
+    multiply-adds (at about half the float32 rate) then costs no more than
+    the randomized method's :math:`q + 2` passes of :math:`2 n_{lv} n_{tx} l`
+    each. Otherwise ``'randomized'`` (predictable cost, unlike EM-PCA's
+    data-dependent number of passes). For the thesis' dome (26,136 rows,
+    k = 256) this is randomized; for the tiny test dome (192 rows), gram.
+    """
+    l = min(k + oversample, n_lv)
+    return "gram" if 8 * n_lv**2 <= memory_bytes and n_lv <= 2 * l * (n_iter + 2) else "randomized"
+
+
+def truncated_svd(
+    blocks: Blocks,
+    n_lv: int,
+    k: int,
+    method: str = "auto",
+    *,
+    rows_id: str | None = None,
+    seed: int = 0,
+    rank_rtol: float = RANK_RTOL,
+    memory_bytes: int = 2**31,
+    oversample: int | None = None,
+    n_iter: int = 4,
+    tol: float = 1e-4,
+    max_iter: int = 100,
+    criterion: str = "angle",
+) -> TruncatedSVD:
+    """Leading ``k`` left singular vectors and values of ``B``, read as column blocks.
+
+    Parameters
+    ----------
+    blocks : callable, list of (n_lv, m_j) ndarray or (n_lv, n_tx) ndarray
+        The matrix ``B``: preferably a callable returning a fresh iterator
+        over its column blocks on every call (one call per pass). Blocks may
+        have any widths; float32 blocks stay float32 in the products of the
+        iterative methods, all sums are float64.
+    n_lv : int
+        Rows of ``B`` (light/view pairs).
+    k : int
+        Basis vectors; at most ``min(n_lv, n_tx)`` and the numerical rank.
+    method : {'auto', 'gram', 'randomized', 'empca'}
+        See the module docstring; ``'auto'`` follows :func:`choose_method`.
+    rows_id : str, optional
+        Fingerprint of the light/view sampling, stored for merging.
+    seed : int
+        Seed of the random start ('randomized', 'empca').
+    rank_rtol : float
+        Singular values at or below ``rank_rtol * sigma_1`` count as zero.
+    memory_bytes : int
+        Memory the Gram matrix may take (``'auto'`` only).
+    oversample : int, optional
+        Extra vectors iterated beyond ``k``; default 10 for 'randomized' and
+        'auto', 0 (Roweis' method) for 'empca'.
+    n_iter : int
+        Power iterations ``q`` of 'randomized': ``q + 2`` passes over the data.
+    tol, max_iter, criterion :
+        Convergence of 'empca' (:func:`btfcore.empca.empca`).
+
+    Returns
+    -------
+    TruncatedSVD
+        ``U`` (n_lv, k), ``sigma`` (k,), the ``method`` used (never
+        'auto'), ``settings`` (every argument that shaped the result, as
+        JSON-serialisable scalars), ``iterations`` (passes), ``change``,
+        ``converged``, ``norm_sq`` and the property ``energy_captured``
+        :math:`= \\sum \\sigma_i^2 / \\|B\\|_F^2`.
+
+    Raises
+    ------
+    ValueError
+        If ``k`` exceeds ``min(n_lv, n_tx)`` or the numerical rank found
+        (names k, the shape and the rank), a block is malformed or holds
+        NaN/Inf (names the block, the index and B's column), or an argument
+        is out of range.
+
+    Notes
+    -----
+    Gram route: :math:`G = B B^T = \\sum_j B_j B_j^T` (float64 products),
+    :math:`G = U \\Lambda U^T`, :math:`\\sigma = \\sqrt{\\lambda}`; eigenvectors
+    have errors about :math:`\\epsilon \\lambda_1 / \\text{gap}`, and
+    singular values below about :math:`\\sqrt{n_{lv}\\epsilon}\\,\\sigma_1` are
+    not resolved.
+
+    Randomized: Halko et al.'s Alg. 4.4 (randomized subspace iteration) on
+    :math:`G`, started from a Gaussian :math:`(n_{lv}, l)` matrix on the row
+    side, i.e. with test matrix :math:`\\Omega = B^T \\Omega_0`, so that the
+    result does not depend on how the columns are blocked; each pass forms
+    :math:`Y = B (B^T Q)` block by block and :math:`Q = \\mathrm{qr}(Y)`, and
+    the last pass' :math:`Q^T Y = Q^T B B^T Q` gives U and sigma by
+    Rayleigh-Ritz (Alg. 5.1's small SVD). This is
+    :func:`btfcore.empca.block_power_iteration` with a fixed pass count.
+    """
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    check_int(n_iter, "n_iter", 0)
+    check_int(memory_bytes, "memory_bytes", 0)
+    p = 10 if oversample is None else oversample
+    n_basis = check_iteration_args(n_lv, k, p, tol)
+    used = choose_method(n_lv, k, memory_bytes=memory_bytes, oversample=p, n_iter=n_iter) \
+        if method == "auto" else method
+    source = as_block_source(blocks)
+    settings = dict(method=used, requested=method, k=int(k), n_lv=int(n_lv), seed=int(seed),
+                    rank_rtol=float(rank_rtol), memory_bytes=int(memory_bytes))
+    if used == "empca":
+        res = empca(source, n_lv, k, tol=tol, max_iter=max_iter, criterion=criterion, oversample=oversample or 0,
+                    seed=seed, rank_rtol=rank_rtol, rows_id=rows_id)
+        return TruncatedSVD(res.U, res.sigma, used, {**res.settings, **settings}, res.iterations, res.change,
+                            res.converged, res.norm_sq, rows_id)
+    if used == "randomized":
+        U, sigma, it, change, _, norm_sq = block_power_iteration(
+            source, n_lv, k, n_basis, max_iter=n_iter + 2, tol=None, seed=seed, rank_rtol=rank_rtol)
+        settings.update(oversample=int(p), n_iter=int(n_iter))
+        return TruncatedSVD(U, sigma, used, settings, it, change, True, norm_sq, rows_id)
+    U, sigma, norm_sq = _gram(source, n_lv, k, rank_rtol)
+    return TruncatedSVD(U, sigma, used, settings, 1, 0.0, True, norm_sq, rows_id)
+
+
+def _gram(source, n_lv: int, k: int, rank_rtol: float) -> tuple[np.ndarray, np.ndarray, float]:
+    """The Gram route: one pass accumulating ``G = sum_j B_j B_j^T`` in float64, then eigh."""
+    G = np.zeros((n_lv, n_lv))
+
+    def visit(b: np.ndarray) -> None:
+        b64 = b.astype(np.float64, copy=False)
+        G[...] += b64 @ b64.T                                        # G = sum_j B_j B_j^T (syrk)
+
+    norm_sq, n_cols = for_each_block(source, n_lv, visit)
+    check_k(k, n_lv, n_cols)
+    lam, W = linalg.eigh(G, subset_by_index=[n_lv - k, n_lv - 1], overwrite_a=True)   # B B^T = U Sigma^2 U^T
+    sigma = np.sqrt(np.maximum(lam[::-1], 0.0))
+    check_rank(sigma, k, f"B ({n_lv}, {n_cols})", rank_rtol)
+    return fix_signs(W[:, ::-1]), sigma, norm_sq

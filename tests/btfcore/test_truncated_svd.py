@@ -1,0 +1,105 @@
+"""Truncated SVD of a BTF matrix over column blocks: Gram route, randomized, EM-PCA, 'auto'."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from _lowrank_cases import assert_meets_bars, decaying, exact_svd, orthonormal, uneven_blocks
+
+from btfcore.truncated_svd import choose_method, column_blocks, truncated_svd
+
+K = 20
+ITERATIVE = ["randomized", "empca"]
+
+
+def _rank12(n_lv: int = 200, n_tx: int = 1000) -> np.ndarray:
+    rng = np.random.default_rng(5)
+    return (orthonormal(rng, n_lv, 12) * np.geomspace(10, 1, 12)) @ orthonormal(rng, n_tx, 12).T
+
+
+def test_gram_route_is_exact():
+    B = decaying()
+    Ue, se = exact_svd()
+    res = truncated_svd(column_blocks(B, 700), B.shape[0], K, "gram")
+    assert res.method == "gram" and res.iterations == 1 and res.converged
+    np.testing.assert_allclose(res.sigma, se[:K], rtol=1e-10)
+    assert np.linalg.norm(res.U @ res.U.T - Ue[:, :K] @ Ue[:, :K].T, 2) < 1e-10
+    assert res.energy_captured == pytest.approx(np.sum(se[:K] ** 2) / np.sum(se**2), rel=1e-12)
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+@pytest.mark.parametrize("method", ["gram", *ITERATIVE])
+def test_every_method_meets_the_bars(method, dtype):
+    B = decaying().astype(dtype)
+    res = truncated_svd(uneven_blocks(B), B.shape[0], K, method)
+    assert res.method == method and res.settings["method"] == method
+    assert_meets_bars(res, B, K)
+
+
+@pytest.mark.parametrize("method", ["gram", *ITERATIVE])
+def test_streaming_equals_in_memory(method):
+    """One in-memory block, many uneven blocks and a callable streaming them give the same model."""
+    B = decaying()
+    one = truncated_svd(B, B.shape[0], K, method)
+    for blocks in (uneven_blocks(B, seed=1), lambda: (B[:, i:i + 333] for i in range(0, B.shape[1], 333))):
+        res = truncated_svd(blocks, B.shape[0], K, method)
+        assert res.iterations == one.iterations
+        np.testing.assert_allclose(res.U, one.U, atol=1e-9)
+        np.testing.assert_allclose(res.sigma, one.sigma, rtol=1e-11)
+        np.testing.assert_allclose(res.norm_sq, one.norm_sq, rtol=1e-12)
+
+
+def test_auto_chooses_by_shape_and_memory_and_says_which():
+    assert choose_method(192, 32, memory_bytes=2**31) == "gram"               # the tiny dome
+    assert choose_method(26136, 256, memory_bytes=2**31) == "randomized"      # the thesis' dome
+    assert choose_method(192, 32, memory_bytes=8 * 192**2 - 1) == "randomized"
+    B = decaying(100, 2000)
+    small = truncated_svd(B, 100, 10)
+    assert small.method == "gram" and small.settings["requested"] == "auto"
+    tight = truncated_svd(B, 100, 10, memory_bytes=8 * 100**2 - 1)
+    assert tight.method == "randomized" and tight.settings["n_iter"] == 4
+    np.testing.assert_allclose(tight.sigma, small.sigma, rtol=1e-6)
+
+
+@pytest.mark.parametrize("method", ["gram", *ITERATIVE])
+def test_k_above_size_or_numerical_rank_is_refused(method):
+    B = _rank12()
+    assert truncated_svd(B, 200, 12, method).k == 12
+    with pytest.raises(ValueError, match=r"k=13 exceeds the numerical rank 12 of B \(200, 1000\)"):
+        truncated_svd(B, 200, 13, method, max_iter=10)
+    with pytest.raises(ValueError, match=r"k=201 exceeds min\(rows, columns\) = 200"):
+        truncated_svd(B, 200, 201, method)
+    with pytest.raises(ValueError, match=r"k=60 exceeds min\(rows, columns\) = 50 of B \(200, 50\)"):
+        truncated_svd(B[:, :50], 200, 60, method)
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+@pytest.mark.parametrize("method", ["gram", *ITERATIVE])
+def test_nan_or_inf_names_the_block_and_index(method, bad):
+    blocks = [b.astype(np.float32) for b in column_blocks(decaying(), 1000)]
+    blocks[2][5, 7] = bad
+    with pytest.raises(ValueError, match=r"blocks\[2\]\[5, 7\] = -?(nan|inf), i\.e\. B\[5, 2007\]"):
+        truncated_svd(blocks, 500, K, method)
+
+
+def test_malformed_sources_are_refused():
+    B = decaying()
+    with pytest.raises(ValueError, match="fresh iterator"):
+        truncated_svd((b for b in [B]), 500, K)                              # a one-shot generator
+    once = iter([B])
+    with pytest.raises(ValueError, match="0 columns in this pass but 4000 in the first"):
+        truncated_svd(lambda: once, 500, K, "randomized")
+    with pytest.raises(ValueError, match=r"blocks\[1\] has shape \(499, 10\)"):
+        truncated_svd([B, B[1:, :10]], 500, K)
+    with pytest.raises(ValueError, match="method must be one of"):
+        truncated_svd(B, 500, K, "lanczos")
+
+
+def test_settings_are_json_scalars():
+    res = truncated_svd(decaying(), 500, K, "randomized", oversample=6, n_iter=3, seed=2, rows_id="s")
+    assert json.loads(json.dumps(res.settings, allow_nan=False)) == res.settings
+    assert res.settings == dict(method="randomized", requested="randomized", k=K, n_lv=500, seed=2,
+                                rank_rtol=1e-5, memory_bytes=2**31, oversample=6, n_iter=3)
+    assert res.iterations == 5 and res.rows_id == "s"
