@@ -82,12 +82,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true", help="replace finished stores of another config")
 
     p = sub.add_parser("demo", help="the main job on the embedded default data",
-                       description="Simulate a small database (one material per class on the tiny dome) "
-                                   "and write OUT/report.json and OUT/report.html. Later pipeline stages "
-                                   "join the demo as they land. Re-running resumes or reuses finished work.")
+                       description="The main job on the embedded virtual dome: simulate two materials per class "
+                                   "on the tiny dome (one per class also S-matrix multiplexed) and a white standard, "
+                                   "calibrate the LEDs, ingest every capture, build the model database "
+                                   "(OUT/model) and write OUT/report.json and OUT/report.html. Later pipeline "
+                                   "stages join the demo as they land. Re-running resumes or reuses finished work.")
     p.add_argument("--out", default="demo-output", metavar="DIR", help="output folder [default: demo-output]")
     p.add_argument("--seed", type=int, default=0, help="root seed [default: 0]")
-    p.add_argument("--materials", type=int, default=6, metavar="N", help="materials to simulate [default: 6]")
+    p.add_argument("--materials", type=int, default=12, metavar="N",
+                   help="materials to simulate; the model database is built when there are at least two per "
+                        "class [default: 12]")
 
     p = sub.add_parser("import-raw", help="import camera raw files (DNG, any LibRaw format) into a capture store",
                        description="Read a folder of camera raw files through LibRaw and write a capture store. "
@@ -147,6 +151,26 @@ def build_parser() -> argparse.ArgumentParser:
                         '[[x, y, z], ...], "view_dirs": [[x, y, z], ...]} in the sample frame (z = surface '
                         'normal, z > 0; normalised here) [default: ubo2014]')
     p.add_argument("--overwrite", action="store_true", help="replace an output of another source or sampling")
+
+    p = sub.add_parser("build-db", help="model database: per-material bases, class and global merges, ABTF bases",
+                       description="Fit the linear models of a database of ingested BTFs (every finished `btf "
+                                   "ingest` store in DB): per-material truncated SVDs of log Y, U/Y and V/Y "
+                                   "(paper 1), relative-error ALS bases of linear RGB (paper 4), eigenspace merges "
+                                   "per class and then globally, and per-class 3x3 ABTF patch bases. Writes "
+                                   "OUT/model.zarr, OUT/report.json (thesis Table 1 from a leave-one-out "
+                                   "evaluation) and OUT/report.html. A rerun reuses every basis whose inputs did "
+                                   "not change, so adding a material recomputes only it, its class and the global "
+                                   "merge.")
+    p.add_argument("db", metavar="DB", help="folder of ingested BTF stores (.zarr), one per material")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    p.add_argument("--classes", default=None, metavar="JSON",
+                   help='material classes for stores that do not carry one: {"<store name>": "<class>", ...}')
+    p.add_argument("--k-log-y", type=int, default=None, metavar="K",
+                   help="per-material log Y basis vectors [default: the thesis' 200, capped by the data]")
+    p.add_argument("--k-chroma", type=int, default=None, metavar="K",
+                   help="per-material U/Y and V/Y basis vectors [default: 100, capped by the data]")
+    p.add_argument("--k-merged", type=int, default=None, metavar="K",
+                   help="basis vectors kept by each merge [default: 2048, capped by the data]")
 
     p = sub.add_parser("export-exr", help="write BTF textures as OpenEXR files",
                        description="Write selected (or all) textures of a BTF store (from `btf ingest`) as "
@@ -293,6 +317,16 @@ def _run_flow(args: argparse.Namespace, address: str, config, device) -> dict:
     from flows.simulate import demo_flow, simulate_flow
 
     progress = not args.no_progress
+    if args.command == "build-db":
+        from flows.model import build_db_flow
+        from tasks.model import ModelSettings, with_k
+
+        settings = with_k(ModelSettings(k_class=args.k_merged, k_global=args.k_merged), log_y=args.k_log_y,
+                          u_y=args.k_chroma, v_y=args.k_chroma)
+        report = build_db_flow(args.db, args.out, address, settings, classes=args.classes, progress=progress)
+        out = Path(args.out).resolve()
+        return {"command": "build-db", "out": str(out), "model": report["model"], "trends": report["trends"],
+                "report_json": str(out / "report.json"), "report_html": str(out / "report.html")}
     if args.command == "ingest":
         return ingest_flow(args.capture, args.out, address, overwrite=args.overwrite, progress=progress,
                            white=args.white, white_albedo=args.white_albedo, colour_matrix=args.colour_matrix)

@@ -73,15 +73,18 @@ def simulate_flow(config: SimulationConfig, out_dir: str, scheduler_address: str
 
 
 @flow(name="btf-demo", log_prints=False)
-def demo_flow(out_dir: str, scheduler_address: str, seed: int = 0, n_materials: int = 6,
+def demo_flow(out_dir: str, scheduler_address: str, seed: int = 0, n_materials: int = 12,
               progress: bool = True) -> dict[str, Any]:
-    """The main job on the embedded default: simulate a small database (single-LED and
-    S-matrix multiplexed) and a white standard, calibrate the LEDs on the white standard,
-    ingest every capture back to a calibrated BTF, and report them against the ground truth.
+    """The main job on the embedded default: simulate a small database (single-LED, and
+    S-matrix multiplexed for one material per class) and a white standard, calibrate the LEDs
+    on the white standard, ingest every capture back to a calibrated BTF, build the model
+    database from the single-LED BTFs (``out/model``), and report against the ground truth.
 
-    Later stages (models, acquisition) join this flow as they land.
+    Later stages (acquisition) join this flow as they land.
     """
     from flows.ingest import calibration_stage, ingest_database_stage
+    from flows.model import build_stage, model_report_stage
+    from tasks.model import ModelSettings
 
     start = time.perf_counter()
     out = Path(out_dir)
@@ -92,7 +95,9 @@ def demo_flow(out_dir: str, scheduler_address: str, seed: int = 0, n_materials: 
     ingest_database_stage(white["stores"], str(out / "btf-white"), scheduler_address, progress)
     calibration = calibration_stage(str(out / "btf-white" / Path(white["stores"][0]).name), 0.99, None)
     ingest = ingest_database_stage(stage["stores"], str(out / "btf"), scheduler_address, progress, calibration)
-    mux_config = SimulationConfig(device="tiny", n_materials=n_materials, seed=seed, illumination="multiplexed")
+    n_classes = len(config.classes)
+    mux_config = SimulationConfig(device="tiny", n_materials=min(n_materials, n_classes), seed=seed,
+                                  illumination="multiplexed")
     mux = simulate_stage(mux_config, str(out / "database-multiplexed"), scheduler_address, False, progress)
     ingest_mux = ingest_database_stage(mux["stores"], str(out / "btf-multiplexed"), scheduler_address, progress,
                                        calibration)
@@ -103,6 +108,13 @@ def demo_flow(out_dir: str, scheduler_address: str, seed: int = 0, n_materials: 
                       "ingest multiplexed": {"seconds": round(sum(r["seconds"] for r in ingest_mux.values()), 3)}},
            "radiometric": calibration.info, "ingest": ingest, "ingest_multiplexed": ingest_mux,
            "ingest_btf": {Path(store).stem: str(out / "btf" / Path(store).name) for store in stage["stores"]}}
+    if n_materials >= 2 * n_classes:         # leave-one-out needs two materials per class
+        start_model = time.perf_counter()
+        model = model_report_stage(str(out / "model"), build_stage(str(out / "btf"), str(out / "model"),
+                                   scheduler_address, ModelSettings(), None, progress), ModelSettings())
+        run["stages"]["build-db"] = {"seconds": round(time.perf_counter() - start_model, 3)}
+        run["model"] = {"report_html": str(out / "model" / "report.html"), "ks": model["ks"],
+                        "table_1": model["table_1"], "trends": model["trends"], "k": model["k"]}
     report = report_stage(config, out_dir, stage["stores"], run)
     report["seconds"] = round(time.perf_counter() - start, 3)
     write_json(Path(out_dir) / "report.json", report)

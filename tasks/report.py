@@ -45,7 +45,7 @@ def write_json(path: str | Path, data: dict[str, Any]) -> Path:
     return path
 
 
-def _save_png(path: Path, rgb: np.ndarray, scale: int | tuple[int, int] = 1) -> str:
+def save_png(path: Path, rgb: np.ndarray, scale: int | tuple[int, int] = 1) -> str:
     """Write an 8-bit image, enlarged by whole pixels (``scale`` or ``(sy, sx)``)."""
     sy, sx = (scale, scale) if isinstance(scale, int) else scale
     if sy > 1 or sx > 1:
@@ -130,12 +130,27 @@ def ingest_validity(btf_path: str | Path, capture_path: str | Path, *, listed: i
     return summary
 
 
-def plot_dome(device: Device, path: Path) -> str:
-    """Hemisphere plot of LEDs, cameras and the turntable's view directions."""
+def pyplot() -> Any:
+    """matplotlib's pyplot on the file-only Agg backend (no display on workers or CI)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
+    return plt
+
+
+def save_figure(fig: Any, path: Path) -> str:
+    """Lay out, write (90 dpi) and close a figure; its file name."""
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    pyplot().close(fig)
+    return path.name
+
+
+def plot_dome(device: Device, path: Path) -> str:
+    """Hemisphere plot of LEDs, cameras and the turntable's view directions."""
+    plt = pyplot()
 
     def polar(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         v = np.atleast_2d(v)
@@ -169,10 +184,7 @@ def plot_dome(device: Device, path: Path) -> str:
     ax3.set_box_aspect((1, 1, 0.5))
     ax3.set_title("dome (metres)")
     ax3.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return path.name
+    return save_figure(fig, path)
 
 
 def raw_frame_images(store: CaptureStore, out: Path, prefix: str, views: Sequence[tuple[int, int, int]]) -> list[dict]:
@@ -184,7 +196,7 @@ def raw_frame_images(store: CaptureStore, out: Path, prefix: str, views: Sequenc
         frames, times = store.read_bracket(t, c, i)
         tiles = [srgb_encode((f.astype(np.float64) - meta.black_level) / span) for f in frames]
         strip = np.concatenate([np.pad(tile, 2, constant_values=1.0) for tile in tiles], axis=1)
-        name = _save_png(out / f"{prefix}_raw_t{t}_c{c}_i{i}.png", np.round(strip * 255).astype(np.uint8),
+        name = save_png(out / f"{prefix}_raw_t{t}_c{c}_i{i}.png", np.round(strip * 255).astype(np.uint8),
                          scale=max(1, 256 // frames.shape[-2]))
         items.append({"file": name, "turntable": t, "camera": c, "illumination": i,
                       "exposure_time_s": [float(x) for x in times]})
@@ -213,7 +225,7 @@ def texture_images(store: CaptureStore, out: Path, prefix: str) -> list[dict]:
     white = float(np.percentile(textures, 99.5))
     items = []
     for (lv, label), texture in zip(pairs, textures):
-        name = _save_png(out / f"{prefix}_texture_lv{lv}.png", tonemap(texture, white=white),
+        name = save_png(out / f"{prefix}_texture_lv{lv}.png", tonemap(texture, white=white),
                          scale=max(1, 128 // texture.shape[0]))
         items.append({"file": name, "lv": lv, "label": label})
     return items
@@ -236,7 +248,7 @@ def ingest_images(store: CaptureStore, btf_path: str | Path, out: Path, prefix: 
     for (lv, label), a, b in zip(pairs, want, got):
         pad = np.full((a.shape[0], 2, 3), 255, np.uint8)
         image = np.concatenate([tonemap(a, white=white_truth), pad, tonemap(np.maximum(b, 0), white=white_got)], 1)
-        name = _save_png(out / f"{prefix}_ingest_lv{lv}.png", image, scale=max(1, 128 // a.shape[0]))
+        name = save_png(out / f"{prefix}_ingest_lv{lv}.png", image, scale=max(1, 128 // a.shape[0]))
         items.append({"file": name, "lv": lv, "label": label, "calibrated": calibrated})
     return items
 
@@ -250,7 +262,7 @@ def abrdf_image(store: CaptureStore, out: Path, prefix: str) -> dict:
     image = column.reshape(n_views, store.n_leds, 3)                  # rows: views, cols: lights
     # whole-pixel enlargement to at least ~192 px per axis, as in Fig. 1.3
     scale = tuple(max(1, int(math.ceil(192 / n))) for n in image.shape[:2])
-    name = _save_png(out / f"{prefix}_abrdf.png", tonemap(image), scale=scale)
+    name = save_png(out / f"{prefix}_abrdf.png", tonemap(image), scale=scale)
     return {"file": name, "texel": [h // 2, w // 2], "shape": [n_views, store.n_leds]}
 
 
@@ -369,6 +381,19 @@ def simulation_report(out_dir: str | Path, device: Device, store_paths: Sequence
                 [name, label, cell(r, "relative_l2_linear"), cell(r, "relative_l2_log_y"),
                  cell(r, "calibrated_relative_l2_linear"), cell(r, "calibrated_relative_l2_log_y"),
                  r.get("raw_mb_per_s", "")] for name, label, r in rows],
+        })
+    if run.get("model"):
+        model = run["model"]
+        ks = model["ks"]
+        sections.append({
+            "title": "Model database (btf build-db): thesis Table 1, leave one out",
+            "text": f"log Y relative projection errors [%] of each material on bases merged without it; full "
+                    f"report with spectra and reconstructions: {model['report_html']}. Trends: "
+                    + "; ".join(f"{k}: {v}" for k, v in model["trends"].items()),
+            "table": [["class", "FMF"] + [f"class k={k}" for k in ks] + [f"global k={k}" for k in ks]] + [
+                [cls, f"{row['fmf']:.2f}"] + [("-" if row[f"{kind}_{k}"] is None else f"{row[f'{kind}_{k}']:.2f}")
+                                              for kind in ("class", "global") for k in ks]
+                for cls, row in model["table_1"].items()],
         })
     report = {"report": "btf-simulate", **run, "device": {
         "name": device.name, "n_cam": device.n_cam, "n_leds": device.n_leds, "n_turn": device.n_turn,

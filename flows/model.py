@@ -1,0 +1,66 @@
+"""Prefect flow of ``btf build-db``: the model database of a folder of ingested BTFs (DESIGN stage 8)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+from prefect import flow, task
+from prefect.cache_policies import NO_CACHE
+
+from flows.runtime import RETRY_ONCE
+from tasks.model import ModelSettings
+
+
+# Retrying the stage resumes it: bases whose key is stored are reused; bad input is not retried.
+@task(name="model-database", **RETRY_ONCE, cache_policy=NO_CACHE)
+def build_stage(db: str, out: str, scheduler_address: str, settings: ModelSettings,
+                class_map: dict[str, str] | None, progress: bool) -> dict[str, Any]:
+    from distributed import Client
+
+    from flows.simulate import _progress_bar
+    from tasks.model import build_database
+
+    bars = []
+
+    def bar(desc: str):
+        b, update = _progress_bar(desc, progress)
+        bars.append(b)
+        return update
+
+    try:
+        with Client(scheduler_address, set_as_default=False) as client:
+            return build_database(db, out, client, settings=settings, class_map=class_map, progress=bar)
+    finally:
+        for b in bars:
+            b.close()
+
+
+@task(name="model-report", cache_policy=NO_CACHE)
+def model_report_stage(out: str, summary: dict[str, Any], settings: ModelSettings) -> dict[str, Any]:
+    from tasks.model_report import model_report
+
+    return model_report(out, summary, settings)
+
+
+@flow(name="btf-build-db", log_prints=False)
+def build_db_flow(db: str, out: str, scheduler_address: str, settings: ModelSettings = ModelSettings(),
+                  classes: str | None = None, progress: bool = True) -> dict[str, Any]:
+    """Ingested BTF stores in ``db`` -> ``out/model.zarr`` with ``out/report.json`` and ``report.html``.
+
+    Materials are grouped by the class in their store (``classes``: a JSON
+    file mapping store names to classes, for real captures). Per-material
+    bases run in parallel, then the class merges, the global merge, the
+    per-class ABTF bases and the leave-one-out evaluation. A rerun reuses
+    every basis whose inputs did not change.
+    """
+    class_map = None
+    if classes:
+        try:
+            class_map = json.loads(Path(classes).read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise ValueError(f"{classes}: not a readable JSON class map ({exc}); write "
+                             '{"<store name>": "<class>", ...}') from None
+    summary = build_stage(db, out, scheduler_address, settings, class_map, progress)
+    return model_report_stage(out, summary, settings)

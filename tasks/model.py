@@ -1,0 +1,507 @@
+"""The model database (DESIGN stage 8): per-material bases, class and global merges, ABTF bases.
+
+`btf build-db DB --out MODEL` reads the ingested BTF stores of a database
+(``btf-texture``, one per material) and writes one Zarr v3 group,
+``MODEL/model.zarr`` (schema ``btf-model`` 1.0):
+
+* ``light_dir``, ``view_dir`` ``(n_lv, 3)``: the common light/view sampling;
+* ``materials/<id>/<basis>/{U, sigma}``: per-material bases;
+* ``classes/<class>/<basis>/{U, sigma}``: merged per class (eigenspace merging);
+* ``global/<basis>/{U, sigma}``: the class models merged;
+
+with ``basis`` one of
+
+* ``log_y``, ``u_y``, ``v_y``: the colour channels of paper 1 §3.1
+  (:func:`btfcore.colour.to_log_yuv`), ABRDF columns (one per texel);
+* ``abtf_log_y``: ``p x p`` ABTF patches of ``log_y`` (paper 1 §3.3),
+  non-overlapping for fitting; per material and per class only, as in the thesis;
+* ``als``: relative-error weighted basis of the linear RGB BTF by
+  alternating least squares (paper 4 eqs. 5-9), merged by eq. (9).
+
+Every basis group carries ``key`` (a hash of its inputs and settings) written
+after its arrays: a rerun skips a basis whose key is unchanged, so a killed
+build resumes and adding a material recomputes only that material, its
+class and the global merge.
+
+Matrices stream through btfcore in texel bands (the BTF store's chunks are
+one view x a band of rows), so no material is ever held whole except for
+the ALS basis, whose in-memory size is checked first.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zarr
+
+from btfcore._lowrank import RankError, TruncatedSVD
+from btfcore.abtf import patch_matrix
+from btfcore.als import als_basis, relative_error_weights
+from btfcore.colour import to_log_yuv
+from btfcore.eigenspace_merging import merge_eigenspaces
+from btfcore.truncated_svd import truncated_svd
+from tasks.store import to_json_attr
+
+SCHEMA_NAME = "btf-model"
+SCHEMA_VERSION = "1.0"
+#: Bases fitted per material and merged per class and globally (``abtf_log_y`` per class only).
+CHANNELS = ("log_y", "u_y", "v_y")
+BASES = CHANNELS + ("abtf_log_y", "als")
+
+
+@dataclass(frozen=True)
+class ModelSettings:
+    """What a model database depends on besides its materials.
+
+    ``None`` for a ``k`` means the thesis' value (paper 1 §4.1: 200 for log Y,
+    100 for U/Y and V/Y per material, 2048 merged; 64 components for the
+    ALS basis) capped to what the data allows: half the smaller side of a
+    material's matrix (a per-material basis is a compression, and the rest
+    of its spectrum is noise) and its numerical rank. An explicit
+    per-material value larger than that is an error. The merged ``k_class``
+    and ``k_global`` are upper bounds for every basis: a merge keeps at most
+    that many vectors, and no more than it has or than their rank.
+    """
+
+    k_material: dict[str, int | None] = field(default_factory=lambda: {
+        "log_y": None, "u_y": None, "v_y": None, "abtf_log_y": None, "als": None})
+    k_class: int | None = None
+    k_global: int | None = None
+    patch: int = 3
+    method: str = "auto"
+    memory_bytes: int = 1 << 30
+    als_iterations: int = 30
+    als_max_bytes: int = 1 << 30
+    seed: int = 0
+
+    def key(self) -> str:
+        return _hash(asdict(self))
+
+
+THESIS_K = {"log_y": 200, "u_y": 100, "v_y": 100, "abtf_log_y": 200, "als": 64, "merged": 2048}
+
+
+def _hash(payload: Any) -> str:
+    return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def _choose_k(requested: int | None, default: int, limit: int, what: str) -> int:
+    """``requested`` (checked against ``limit``) or the thesis ``default`` capped to ``limit``."""
+    if requested is None:
+        return int(min(default, limit))
+    if requested > limit:
+        raise ValueError(f"k = {requested} for {what} exceeds what the data allows ({limit}); choose k <= {limit}")
+    return int(requested)
+
+
+# --------------------------------------------------------------------------- the database
+
+
+@dataclass(frozen=True)
+class Material:
+    """One ingested BTF store of the database."""
+
+    material_id: str
+    cls: str
+    path: str
+    ingest_hash: str
+    n_lv: int
+    texture_shape: tuple[int, int]
+    rows_id: str
+
+
+def rows_fingerprint(light_dir: np.ndarray, view_dir: np.ndarray) -> str:
+    """Hash of a light/view sampling (directions rounded to 1e-9): equal samplings, equal ids."""
+    rounded = np.round(np.concatenate([light_dir, view_dir], axis=1), 9) + 0.0
+    return hashlib.sha256(rounded.astype(np.float64).tobytes()).hexdigest()[:16]
+
+
+def discover(db: str | os.PathLike, class_map: dict[str, str] | None = None,
+             min_per_class: int = 2) -> list[Material]:
+    """The materials of a database folder: every finished ``btf-texture`` store in it.
+
+    Every problem is collected and raised together (ValueError): stores that
+    are unfinished or resampled, materials without a class, a light/view
+    sampling that differs from the first store's (the first differing row),
+    and classes with fewer than ``min_per_class`` materials (leave-one-out
+    needs another material of the class).
+    """
+    db = Path(db)
+    stores = sorted(p for p in db.glob("*.zarr") if p.is_dir())
+    problems, found = [], []
+    reference = None
+    for path in stores:
+        try:
+            group = zarr.open_group(str(path), mode="r", zarr_format=3)
+        except Exception as exc:  # noqa: BLE001 - any unreadable store is reported, not raised
+            problems.append(f"{path}: not a readable Zarr group ({exc})")
+            continue
+        attrs = dict(group.attrs)
+        if attrs.get("schema") != "btf-texture" or "resampled_from" in attrs:
+            continue                                             # other stores may share the folder
+        if not attrs.get("complete"):
+            problems.append(f"{path}: the ingest is unfinished (complete = false); run `btf ingest` again")
+            continue
+        material = attrs.get("material") or {}
+        cls = (class_map or {}).get(path.stem) or (class_map or {}).get(material.get("material_id", "")) \
+            or material.get("class")
+        if not cls:
+            problems.append(f"{path}: no material class (a real capture); give it in --classes FILE.json as "
+                            f'{{"{path.stem}": "leather", ...}}')
+            continue
+        light, view = group["light_dir"][...], group["view_dir"][...]
+        if reference is None:
+            reference = (path, light, view)
+        elif light.shape != reference[1].shape or not (np.allclose(light, reference[1], atol=1e-9)
+                                                       and np.allclose(view, reference[2], atol=1e-9)):
+            if light.shape != reference[1].shape:
+                where = f"{light.shape[0]} light/view pairs, {reference[0].name} {reference[1].shape[0]}"
+            else:
+                bad = np.flatnonzero(~(np.isclose(light, reference[1], atol=1e-9).all(1)
+                                       & np.isclose(view, reference[2], atol=1e-9).all(1)))
+                where = f"light_dir/view_dir[{int(bad[0])}] differ from {reference[0].name}'s"
+            problems.append(f"{path}: another light/view sampling ({where}); resample both to one sampling "
+                            "(btf resample) before building a database")
+            continue
+        found.append(Material(material.get("material_id") or path.stem, str(cls), str(path), attrs["ingest_hash"],
+                              int(light.shape[0]), tuple(attrs["texture_shape"]), rows_fingerprint(light, view)))
+    counts: dict[str, list[str]] = {}
+    for m in found:
+        counts.setdefault(m.cls, []).append(m.material_id)
+    for cls, ids in sorted(counts.items()):
+        if len(ids) < min_per_class:
+            problems.append(f"class {cls!r} has {len(ids)} material ({', '.join(ids)}): each class needs at least "
+                            f"{min_per_class} (its basis is tested on a material left out); add materials or "
+                            "merge classes with --classes")
+    if not found and not problems:
+        problems.append(f"{db}: no finished BTF store (btf-texture, from `btf ingest`) in this folder")
+    if problems:
+        raise ValueError(f"{db}: {len(problems)} problem(s) with the database:\n  " + "\n  ".join(problems))
+    return found
+
+
+# --------------------------------------------------------------------------- streaming a material
+
+
+def _bands(btf: zarr.Array, multiple: int = 1) -> list[tuple[int, int]]:
+    """Row bands of the texture that follow the store's chunks, each a multiple of ``multiple`` rows
+    (the last ``h % multiple`` rows, which fill no patch of a non-overlapping tiling, are left out)."""
+    usable = btf.shape[1] - btf.shape[1] % multiple
+    step = max(multiple, btf.chunks[1] // multiple * multiple)
+    return [(r, min(r + step, usable)) for r in range(0, usable, step)]
+
+
+def blocks(path: str, basis: str, patch: int = 3) -> Callable[[], Iterator[np.ndarray]]:
+    """A re-iterable source of ``(rows, m_j)`` column blocks of one basis' matrix of a material.
+
+    ``log_y``/``u_y``/``v_y``: one column per texel of that channel of
+    :func:`btfcore.colour.to_log_yuv`; ``abtf_log_y``: non-overlapping
+    ``patch x patch`` patches of ``log_y`` (:func:`btfcore.abtf.patch_matrix`);
+    ``als``: linear RGB, one column per texel and channel.
+    """
+    btf = zarr.open_group(path, mode="r", zarr_format=3)["btf"]
+    n_lv = btf.shape[0]
+    multiple = patch if basis == "abtf_log_y" else 1
+
+    def source() -> Iterator[np.ndarray]:
+        for r0, r1 in _bands(btf, multiple):
+            band = np.asarray(btf[:, r0:r1])                                 # (n_lv, rows, w, 3)
+            if basis == "als":
+                yield band.reshape(n_lv, -1)
+                continue
+            x = to_log_yuv(band)
+            if basis == "abtf_log_y":
+                yield patch_matrix(x[..., 0], patch, overlap=False)
+            else:
+                yield np.ascontiguousarray(x[..., CHANNELS.index(basis)].reshape(n_lv, -1))
+
+    return source
+
+
+def _n_columns(material: Material, basis: str, patch: int) -> int:
+    h, w = material.texture_shape
+    if basis == "abtf_log_y":
+        return (h // patch) * (w // patch)
+    return h * w * (3 if basis == "als" else 1)
+
+
+# --------------------------------------------------------------------------- the store
+
+
+def open_model_store(path: str | os.PathLike, materials: Sequence[Material], settings: ModelSettings) -> zarr.Group:
+    """Create the model store, or reopen it when its light/view sampling matches (then it is added to)."""
+    first = materials[0]
+    src = zarr.open_group(first.path, mode="r", zarr_format=3)
+    if Path(path).exists():
+        group = zarr.open_group(str(path), mode="r+", zarr_format=3)
+        if group.attrs.get("schema") != SCHEMA_NAME or group.attrs.get("rows_id") != first.rows_id:
+            raise FileExistsError(f"{path} holds {'a model store of another light/view sampling' if group.attrs.get('schema') == SCHEMA_NAME else 'something else'}; "
+                                  "choose another --out")
+        return group
+    group = zarr.open_group(str(path), mode="w", zarr_format=3)
+    for name in ("light_dir", "view_dir"):
+        data = src[name][...]
+        group.create_array(name, shape=data.shape, dtype=data.dtype, chunks=data.shape, compressors=None)[...] = data
+    group.attrs.put(to_json_attr({"schema": SCHEMA_NAME, "schema_version": SCHEMA_VERSION, "rows_id": first.rows_id,
+                                  "n_lv": first.n_lv, "bases": list(BASES)}))
+    return group
+
+
+def write_basis(group: zarr.Group, where: str, model: TruncatedSVD, key: str, **attrs: Any) -> None:
+    """Write ``U`` and ``sigma`` under ``where`` and then its ``key`` (the resume marker)."""
+    sub = group.require_group(where)
+    for name, data in (("U", model.U), ("sigma", model.sigma)):
+        sub.create_array(name, shape=data.shape, dtype="float64", chunks=data.shape, compressors=None,
+                         overwrite=True)[...] = data
+    sub.attrs.put(to_json_attr({"method": model.method, "settings": model.settings, "norm_sq": model.norm_sq,
+                                "iterations": model.iterations, "converged": bool(model.converged),
+                                "energy_captured": model.energy_captured, **attrs, "key": key}))
+
+
+def read_basis(group: zarr.Group, where: str) -> TruncatedSVD:
+    sub = group[where]
+    attrs = dict(sub.attrs)
+    return TruncatedSVD(np.asarray(sub["U"][...]), np.asarray(sub["sigma"][...]), attrs.get("method", "stored"),
+                        attrs.get("settings", {}), int(attrs.get("iterations", 0)), 0.0,
+                        bool(attrs.get("converged", True)), float(attrs.get("norm_sq", 0.0)),
+                        group.attrs.get("rows_id"))
+
+
+def stored_key(group: zarr.Group, where: str) -> str | None:
+    try:
+        return group[where].attrs.get("key")
+    except KeyError:
+        return None
+
+
+# --------------------------------------------------------------------------- per-material bases
+
+
+def material_key(material: Material, basis: str, settings: ModelSettings) -> str:
+    return _hash({"ingest_hash": material.ingest_hash, "basis": basis, "settings": settings.key()})
+
+
+def fit_material(model_path: str, material: Material, settings: ModelSettings) -> dict[str, Any]:
+    """Fit every basis of one material (skipping those already stored with the same key)."""
+    group = zarr.open_group(model_path, mode="r+", zarr_format=3)
+    done = {}
+    for basis in BASES:
+        where = f"materials/{material.material_id}/{basis}"
+        key = material_key(material, basis, settings)
+        if stored_key(group, where) == key:
+            done[basis] = "reused"
+            continue
+        rows = material.n_lv * (settings.patch ** 2 if basis == "abtf_log_y" else 1)
+        cols = _n_columns(material, basis, settings.patch)
+        k = _choose_k(settings.k_material.get(basis), THESIS_K[basis], min(rows, cols) // 2,
+                      f"{material.material_id} {basis} ({rows} x {cols})")
+        if basis == "als":
+            model = _fit_als(material, k, settings)
+        else:
+            def fit(k: int) -> TruncatedSVD:
+                return truncated_svd(blocks(material.path, basis, settings.patch), rows, k, settings.method,
+                                     memory_bytes=settings.memory_bytes, seed=settings.seed,
+                                     rows_id=f"{material.rows_id}/{basis}")
+
+            model = _up_to_rank(fit, k, settings.k_material.get(basis) is None, f"{material.path}: {basis}")
+        write_basis(group, where, model, key, material=material.material_id, cls=material.cls, basis=basis)
+        done[basis] = model.method
+    return {"material": material.material_id, "bases": done}
+
+
+def _up_to_rank(fit: Callable[[int], TruncatedSVD], k: int, chosen: bool, what: str) -> TruncatedSVD:
+    """``fit(k)``; when ``k`` was a default (``chosen``) above the data's numerical rank, ``fit(rank)``.
+    A ``k`` the user gave above the rank is an error naming ``what``."""
+    try:
+        return fit(k)
+    except RankError as exc:
+        if chosen and exc.rank >= 1:
+            return fit(exc.rank)
+        raise ValueError(f"{what}: {exc}") from None
+
+
+def _fit_als(material: Material, c: int, settings: ModelSettings) -> TruncatedSVD:
+    """The relative-error ALS basis (paper 4 eqs. 5-8) of a material's linear RGB BTF, in memory."""
+    n_bytes = material.n_lv * _n_columns(material, "als", settings.patch) * 4 * 2     # D and W, float32
+    if n_bytes > settings.als_max_bytes:
+        raise ValueError(f"{material.path}: the ALS basis holds the material in memory ({n_bytes / 2**30:.1f} GiB "
+                         f"with its weights), over the {settings.als_max_bytes / 2**30:.1f} GiB allowed; raise "
+                         "--als-max-bytes or leave 'als' out of --bases")
+    D = np.concatenate(list(blocks(material.path, "als")()), axis=1).astype(np.float32)
+    D = np.maximum(D, 0.0)                                      # radiance: noise below 0 carries no signal
+    res = als_basis(D, c, relative_error_weights(D), n_iter=settings.als_iterations, seed=settings.seed)
+    objective = [float(v) for v in res.objective]
+    return TruncatedSVD(np.asarray(res.U, np.float64), np.asarray(res.sigma, np.float64), "als",
+                        {"c": int(c), "iterations": int(res.iterations), "objective": objective,
+                         "backend": res.backend}, int(res.iterations), 0.0, bool(res.converged),
+                        float(np.sum(D.astype(np.float64) ** 2)), f"{material.rows_id}/als")
+
+
+# --------------------------------------------------------------------------- merges
+
+
+def merge_key(keys: Sequence[str], k: int) -> str:
+    return _hash({"members": sorted(keys), "k": k})
+
+
+def merge_bases(group: zarr.Group, materials: Sequence[Material], settings: ModelSettings,
+                exclude: str | None = None, store: bool = True) -> dict[str, dict[str, TruncatedSVD]]:
+    """Per-class and global merges of every basis (``abtf_log_y``: per class only).
+
+    With ``exclude`` (a material id) the merges leave that material out and
+    are returned, not stored: the leave-one-out bases of the evaluation.
+    """
+    out: dict[str, dict[str, TruncatedSVD]] = {}
+    classes = sorted({m.cls for m in materials})
+    for basis in BASES:
+        per_class: dict[str, tuple[TruncatedSVD, str]] = {}
+        for cls in classes:
+            members = [f"materials/{m.material_id}/{basis}" for m in materials
+                       if m.cls == cls and m.material_id != exclude]
+            per_class[cls] = _merged(group, f"classes/{cls}/{basis}", members, settings.k_class, store)
+        out[basis] = {cls: model for cls, (model, _) in per_class.items()}
+        if basis != "abtf_log_y":      # per class first, then the class models globally (paper 1 §4.1.1)
+            out[basis]["__global__"] = _merged(group, f"global/{basis}", list(per_class.values()),
+                                               settings.k_global, store, [f"classes/{c}/{basis}" for c in per_class])[0]
+    return out
+
+
+def _merged(group: zarr.Group, where: str, members: Sequence[str | tuple[TruncatedSVD, str]], k: int | None,
+            store: bool, names: Sequence[str] | None = None) -> tuple[TruncatedSVD, str]:
+    """Merge stored bases (paths) or given ``(model, key)`` pairs into ``where``; ``(model, key)``."""
+    pairs = [(read_basis(group, m), stored_key(group, m)) if isinstance(m, str) else m for m in members]
+    models = [model for model, _ in pairs]
+    available = min(sum(m.k for m in models), models[0].U.shape[0])
+    # a merged k is an upper bound: one value serves every basis (the chroma bases have few vectors and
+    # low rank), and the leave-one-out merges have fewer vectors to merge
+    k = min(k or THESIS_K["merged"], available)
+    key = merge_key([key for _, key in pairs], k)
+    if store and stored_key(group, where) == key:
+        return read_basis(group, where), key
+    # one merged k serves every basis, and the chroma bases have low rank: a merge keeps at most k
+    merged = _up_to_rank(lambda k: merge_eigenspaces(models, k), k, True, where)
+    if store:
+        write_basis(group, where, merged, key, members=list(names or members))
+    return merged, key
+
+
+# --------------------------------------------------------------------------- evaluation
+
+
+def projection_errors(path: str, U: np.ndarray, basis: str = "log_y", patch: int = 3) -> np.ndarray:
+    """Relative projection error of a material's matrix onto the first k columns of ``U``, for every k.
+
+    :math:`\\varepsilon_k = \\|U_k U_k^T B - B\\|_F / \\|B\\|_F` (paper 1 §4.1.1), from one
+    streaming pass: :math:`\\varepsilon_k^2 = 1 - \\sum_{i<k} \\|u_i^T B\\|^2 / \\|B\\|_F^2`
+    for orthonormal ``U``.
+
+    Returns
+    -------
+    (k_max,) ndarray: entry ``k - 1`` is :math:`\\varepsilon_k`.
+    """
+    total, captured = 0.0, np.zeros(U.shape[1])
+    for block in blocks(path, basis, patch)():
+        b = block.astype(np.float64)
+        total += float(np.sum(b * b))
+        captured += np.sum((U.T @ b) ** 2, axis=1)
+    return np.sqrt(np.maximum(1.0 - np.cumsum(captured) / total, 0.0))                  # eq. epsilon
+
+
+def leave_one_out(model_path: str, materials: Sequence[Material], material_id: str,
+                  settings: ModelSettings) -> dict[str, Any]:
+    """Projection errors of one material onto bases merged without it (thesis Table 1).
+
+    ``class`` and ``global``: the ``log_y`` bases; ``abtf``: the class'
+    ``abtf_log_y`` basis on the material's non-overlapping patches;
+    ``fmf``: the material's own ``log_y`` basis (the thesis' FMF column).
+    """
+    group = zarr.open_group(model_path, mode="r", zarr_format=3)
+    material = next(m for m in materials if m.material_id == material_id)
+    merged = merge_bases(group, materials, settings, exclude=material_id, store=False)
+    own = read_basis(group, f"materials/{material_id}/log_y")
+    return {
+        "material": material_id, "class": material.cls,
+        "class_basis": projection_errors(material.path, merged["log_y"][material.cls].U).tolist(),
+        "global_basis": projection_errors(material.path, merged["log_y"]["__global__"].U).tolist(),
+        "abtf_class_basis": projection_errors(material.path, merged["abtf_log_y"][material.cls].U,
+                                              "abtf_log_y", settings.patch).tolist(),
+        "fmf": float(projection_errors(material.path, own.U)[-1]), "fmf_k": own.k,
+    }
+
+
+def table_1(results: Sequence[dict[str, Any]], ks: Sequence[int]) -> dict[str, dict[str, Any]]:
+    """Mean leave-one-out errors per class at the given numbers of basis vectors (percent)."""
+    table: dict[str, dict[str, Any]] = {}
+    for cls in sorted({r["class"] for r in results}):
+        rows = [r for r in results if r["class"] == cls]
+
+        def at(key: str, k: int) -> float | None:
+            values = [r[key][k - 1] for r in rows if len(r[key]) >= k]
+            return round(100 * float(np.mean(values)), 3) if len(values) == len(rows) else None
+
+        table[cls] = {"fmf": round(100 * float(np.mean([r["fmf"] for r in rows])), 3),
+                      **{f"class_{k}": at("class_basis", k) for k in ks},
+                      **{f"global_{k}": at("global_basis", k) for k in ks},
+                      **{f"abtf_{k}": at("abtf_class_basis", k) for k in ks}}
+    return table
+
+
+def with_k(settings: ModelSettings, **k: int | None) -> ModelSettings:
+    """``settings`` with some per-material ``k`` replaced."""
+    return replace(settings, k_material={**settings.k_material, **k})
+
+
+# --------------------------------------------------------------------------- the whole build
+
+
+def _run_all(client: Any, fn: Callable[..., Any], args: Sequence[tuple], progress: Callable[[int, int], None] | None
+             ) -> list[Any]:
+    """``fn(*a)`` for every ``a`` on the cluster, results in order; ``progress(done, total)`` as they finish."""
+    from distributed import as_completed
+
+    futures = [client.submit(fn, *a, pure=False) for a in args]
+    for done, future in enumerate(as_completed(futures), 1):
+        future.result()
+        if progress is not None:
+            progress(done, len(futures))
+    return [f.result() for f in futures]
+
+
+def build_database(db: str | os.PathLike, out_dir: str | os.PathLike, client: Any, *,
+                   settings: ModelSettings = ModelSettings(), class_map: dict[str, str] | None = None,
+                   ks: Sequence[int] | None = None,
+                   progress: Callable[[str], Callable[[int, int], None] | None] | None = None) -> dict[str, Any]:
+    """Fit, merge and evaluate the model database of ``db`` into ``out_dir/model.zarr``.
+
+    Per-material bases run as one Dask task per material; the merges are
+    small SVDs in this process; the leave-one-out evaluation is again one
+    task per material. Returns the summary the report is made from.
+    """
+    materials = discover(db, class_map)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    model_path = str(out / "model.zarr")
+    group = open_model_store(model_path, materials, settings)
+    fits = _run_all(client, fit_material, [(model_path, m, settings) for m in materials],
+                    progress and progress("material bases"))
+    merged = merge_bases(group, materials, settings)
+    loo = _run_all(client, leave_one_out, [(model_path, materials, m.material_id, settings) for m in materials],
+                   progress and progress("leave-one-out"))
+    k_max = min(len(r["class_basis"]) for r in loo)
+    ks = [k for k in (ks or (1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024, 2048)) if k <= k_max]
+    group.attrs.update(to_json_attr({"materials": {m.material_id: {"class": m.cls, "btf": m.path,
+                                                                   "ingest_hash": m.ingest_hash} for m in materials},
+                                     "settings": asdict(settings)}))
+    return {
+        "model": model_path, "materials": [asdict(m) for m in materials],
+        "fits": fits, "k": {basis: {name: model.k for name, model in d.items()} for basis, d in merged.items()},
+        "spectra": {name: model.sigma.tolist() for name, model in merged["log_y"].items()},
+        "leave_one_out": loo, "table_1": table_1(loo, ks), "ks": ks,
+    }
