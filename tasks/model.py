@@ -298,22 +298,31 @@ def fit_material(model_path: str, material: Material, settings: ModelSettings) -
         if stored_key(group, where) == key:
             done[basis] = "reused"
             continue
-        rows = material.n_lv * (settings.patch ** 2 if basis == "abtf_log_y" else 1)
-        cols = _n_columns(material, basis, settings.patch)
-        k = _choose_k(settings.k_material.get(basis), THESIS_K[basis], min(rows, cols) // 2,
-                      f"{material.material_id} {basis} ({rows} x {cols})")
-        if basis == "als":
-            model = _fit_als(material, k, settings)
-        else:
-            def fit(k: int) -> TruncatedSVD:
-                return truncated_svd(blocks(material.path, basis, settings.patch), rows, k, settings.method,
-                                     memory_bytes=settings.memory_bytes, seed=settings.seed,
-                                     rows_id=f"{material.rows_id}/{basis}")
-
-            model = _up_to_rank(fit, k, settings.k_material.get(basis) is None, f"{material.path}: {basis}")
+        try:
+            model = _fit_basis(material, basis, settings)
+        except ValueError as exc:             # NaN in the BTF, k above the rank: name the store and basis
+            message = str(exc)
+            raise ValueError(message if message.startswith(material.path) else
+                             f"{material.path}: {basis} basis: {message}") from None
         write_basis(group, where, model, key, material=material.material_id, cls=material.cls, basis=basis)
         done[basis] = model.method
     return {"material": material.material_id, "bases": done}
+
+
+def _fit_basis(material: Material, basis: str, settings: ModelSettings) -> TruncatedSVD:
+    rows = material.n_lv * (settings.patch ** 2 if basis == "abtf_log_y" else 1)
+    cols = _n_columns(material, basis, settings.patch)
+    k = _choose_k(settings.k_material.get(basis), THESIS_K[basis], min(rows, cols) // 2,
+                  f"{material.material_id} {basis} ({rows} x {cols})")
+    if basis == "als":
+        return _fit_als(material, k, settings)
+
+    def fit(k: int) -> TruncatedSVD:
+        return truncated_svd(blocks(material.path, basis, settings.patch), rows, k, settings.method,
+                             memory_bytes=settings.memory_bytes, seed=settings.seed,
+                             rows_id=f"{material.rows_id}/{basis}")
+
+    return _up_to_rank(fit, k, settings.k_material.get(basis) is None, f"{material.path}: {basis}")
 
 
 def _up_to_rank(fit: Callable[[int], TruncatedSVD], k: int, chosen: bool, what: str) -> TruncatedSVD:

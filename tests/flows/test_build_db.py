@@ -119,3 +119,16 @@ def test_cli_builds_the_report(run_btf, database, tmp_path):
     assert (tmp_path / "model" / "report_files" / "model_000-leather_abrdf.png").exists()
     code, _, stderr = run_btf("build-db", db, "--out", tmp_path / "m2", "--k-log-y", "5000")
     assert code == 1 and "k = 5000" in stderr and "exceeds what the data allows" in stderr
+
+
+def test_nan_in_a_btf_names_the_store_and_the_index(database, tmp_path, dask_client):
+    db = tmp_path / "db"
+    for name in ("000-leather", "006-leather", "001-cloth", "007-cloth"):
+        shutil.copytree(database / f"{name}.zarr", db / f"{name}.zarr")
+    btf = zarr.open_group(str(db / "007-cloth.zarr"), mode="r+")["btf"]
+    band = btf[:, 0:2]
+    band[3, 1, 5, 0] = np.nan
+    btf[:, 0:2] = band
+    with pytest.raises(ValueError, match=r"007-cloth.zarr: log_y basis: .*NaN") as err:
+        build_database(db, tmp_path / "model", dask_client, settings=SMALL)
+    assert "[3," in str(err.value) or "index" in str(err.value), str(err.value)
