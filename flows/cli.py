@@ -172,6 +172,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--k-merged", type=int, default=None, metavar="K",
                    help="basis vectors kept by each merge [default: 2048, capped by the data]")
 
+    p = sub.add_parser("schedule", help="serve a scheduled deployment (cron) of a database build",
+                       description="Serve a Prefect deployment that runs `btf build-db DB --out OUT` on a cron "
+                                   "schedule, each run on the Dask cluster of --cluster and incremental (only new "
+                                   "or changed materials are fitted). Needs a running Prefect server: set "
+                                   "PREFECT_API_URL (e.g. `prefect server start` elsewhere); cron schedules do "
+                                   "not fire on a temporary server. Runs until stopped.")
+    p.add_argument("what", choices=("build-db",), help="the job to schedule")
+    p.add_argument("db", metavar="DB", help="folder of ingested BTF stores")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder of the model database")
+    p.add_argument("--cron", required=True, metavar="EXPR", help='cron expression, e.g. "0 3 * * *" (03:00 daily)')
+    p.add_argument("--name", default="build-db", help="deployment name [default: build-db]")
+    p.add_argument("--classes", default=None, metavar="JSON", help="material classes for stores without one")
+
     p = sub.add_parser("export-exr", help="write BTF textures as OpenEXR files",
                        description="Write selected (or all) textures of a BTF store (from `btf ingest`) as "
                                    "float32 RGB OpenEXR files named lv<row>_t<turntable>_c<camera>_l<light>.exr, "
@@ -257,6 +270,26 @@ def _evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _schedule(args: argparse.Namespace) -> int:
+    import os
+
+    if not os.environ.get("PREFECT_API_URL"):
+        print("btf schedule: no Prefect server: set PREFECT_API_URL to a running server (start one with "
+              "`prefect server start`); a cron schedule does not fire on the temporary server of a single run",
+              file=sys.stderr)
+        return EXIT_RUNTIME
+    from prefect import serve
+
+    from flows.schedule import build_db_deployment
+
+    deployment = build_db_deployment(args.db, args.out, args.cron, cluster=args.cluster, classes=args.classes,
+                                     name=args.name)
+    print(json.dumps({"serving": f"btf-build-db-scheduled/{args.name}", "cron": args.cron,
+                      "parameters": deployment.parameters}, indent=2), flush=True)
+    serve(deployment)
+    return 0
+
+
 def _validate(args: argparse.Namespace) -> int:
     from tasks.store import validate_capture_store
 
@@ -282,6 +315,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return _export_exr(args)
     if args.command == "evaluate":
         return _evaluate(args)
+    if args.command == "schedule":
+        return _schedule(args)
 
     from flows.runtime import RuntimeUnavailable, runtime
 

@@ -132,3 +132,15 @@ def test_nan_in_a_btf_names_the_store_and_the_index(database, tmp_path, dask_cli
     with pytest.raises(ValueError, match=r"007-cloth.zarr: log_y basis: .*NaN") as err:
         build_database(db, tmp_path / "model", dask_client, settings=SMALL)
     assert "[3," in str(err.value) or "index" in str(err.value), str(err.value)
+
+
+def test_scheduled_build_is_a_cron_deployment_and_needs_a_server(monkeypatch, capsys):
+    from flows.cli import main
+    from flows.schedule import build_db_deployment
+
+    deployment = build_db_deployment("db", "model", "0 3 * * *", cluster="infra/local.yaml")
+    assert [s.schedule.cron for s in deployment.schedules] == ["0 3 * * *"]
+    assert deployment.parameters == {"db": "db", "out": "model", "cluster": "infra/local.yaml", "classes": None}
+    monkeypatch.delenv("PREFECT_API_URL", raising=False)
+    assert main(["schedule", "build-db", "db", "--out", "model", "--cron", "0 3 * * *"]) == 3
+    assert "set PREFECT_API_URL to a running server" in capsys.readouterr().err
