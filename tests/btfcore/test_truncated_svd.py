@@ -54,12 +54,13 @@ def test_streaming_equals_in_memory(method):
 def test_auto_chooses_by_shape_and_memory_and_says_which():
     assert choose_method(192, 32, memory_bytes=2**31) == "gram"               # the tiny dome
     assert choose_method(26136, 256, memory_bytes=2**31) == "randomized"      # the thesis' dome
+    assert choose_method(3200, 256, memory_bytes=2**31) == "gram"             # l = 320, 5 passes: 3200 rows
     assert choose_method(192, 32, memory_bytes=8 * 192**2 - 1) == "randomized"
     B = decaying(100, 2000)
     small = truncated_svd(B, 100, 10)
     assert small.method == "gram" and small.settings["requested"] == "auto"
     tight = truncated_svd(B, 100, 10, memory_bytes=8 * 100**2 - 1)
-    assert tight.method == "randomized" and tight.settings["n_iter"] == 4
+    assert tight.method == "randomized" and tight.settings["n_iter"] == 3 and tight.settings["oversample"] == 10
     np.testing.assert_allclose(tight.sigma, small.sigma, rtol=1e-6)
 
 
