@@ -42,7 +42,7 @@ import numpy as np
 import zarr
 
 from btfcore._lowrank import RankError, TruncatedSVD
-from btfcore.abtf import patch_matrix
+from btfcore.abtf import blend_patches, patch_matrix
 from btfcore.als import als_basis, relative_error_weights
 from btfcore.colour import to_log_yuv
 from btfcore.eigenspace_merging import merge_eigenspaces
@@ -423,12 +423,36 @@ def projection_errors(path: str, U: np.ndarray, basis: str = "log_y", patch: int
     return np.sqrt(np.maximum(1.0 - np.cumsum(captured) / total, 0.0))                  # eq. epsilon
 
 
+def abtf_projection_errors(path: str, U: np.ndarray, patch: int, max_bytes: int) -> list[float | None]:
+    """Relative log Y error of a material's texels after projecting ALL its ``patch x patch`` patches
+    on an ABTF basis and blending them back, every patch weighted equally (paper 1 §4.1.2).
+
+    Computed for k = 1, 2, 4, ... and the basis size; entry ``k - 1`` of the list, ``None``
+    elsewhere. Holds the material's log Y in memory (refused above ``max_bytes``).
+    """
+    btf = zarr.open_group(path, mode="r", zarr_format=3)["btf"]
+    n_bytes = int(np.prod(btf.shape[:3])) * 8 * 3
+    if n_bytes > max_bytes:
+        raise ValueError(f"{path}: the ABTF evaluation holds the material's log Y and its patches in memory "
+                         f"({n_bytes / 2**30:.1f} GiB), over {max_bytes / 2**30:.1f} GiB")
+    log_y = to_log_yuv(np.asarray(btf[...]))[..., 0].astype(np.float64)              # (n_lv, h, w)
+    columns = patch_matrix(log_y, patch, overlap=True)
+    coefficients = U.T @ columns
+    norm = np.linalg.norm(log_y)
+    errors: list[float | None] = [None] * U.shape[1]
+    for k in sorted({2 ** i for i in range(U.shape[1].bit_length()) if 2 ** i <= U.shape[1]} | {U.shape[1]}):
+        blended = blend_patches(U[:, :k] @ coefficients[:k], log_y.shape, patch)
+        errors[k - 1] = float(np.linalg.norm(blended - log_y) / norm)
+    return errors
+
+
 def leave_one_out(model_path: str, materials: Sequence[Material], material_id: str,
                   settings: ModelSettings) -> dict[str, Any]:
     """Projection errors of one material onto bases merged without it (thesis Table 1).
 
     ``class`` and ``global``: the ``log_y`` bases; ``abtf``: the class'
-    ``abtf_log_y`` basis on the material's non-overlapping patches;
+    ``abtf_log_y`` basis on all of the material's patches, blended back to
+    texels (:func:`abtf_projection_errors`);
     ``fmf``: the material's own ``log_y`` basis (the thesis' FMF column).
     """
     group = zarr.open_group(model_path, mode="r", zarr_format=3)
@@ -439,8 +463,8 @@ def leave_one_out(model_path: str, materials: Sequence[Material], material_id: s
         "material": material_id, "class": material.cls,
         "class_basis": projection_errors(material.path, merged["log_y"][material.cls].U).tolist(),
         "global_basis": projection_errors(material.path, merged["log_y"]["__global__"].U).tolist(),
-        "abtf_class_basis": projection_errors(material.path, merged["abtf_log_y"][material.cls].U,
-                                              "abtf_log_y", settings.patch).tolist(),
+        "abtf_class_basis": abtf_projection_errors(material.path, merged["abtf_log_y"][material.cls].U,
+                                                   settings.patch, settings.als_max_bytes),
         "fmf": float(projection_errors(material.path, own.U)[-1]), "fmf_k": own.k,
     }
 
@@ -452,7 +476,7 @@ def table_1(results: Sequence[dict[str, Any]], ks: Sequence[int]) -> dict[str, d
         rows = [r for r in results if r["class"] == cls]
 
         def at(key: str, k: int) -> float | None:
-            values = [r[key][k - 1] for r in rows if len(r[key]) >= k]
+            values = [r[key][k - 1] for r in rows if len(r[key]) >= k and r[key][k - 1] is not None]
             return round(100 * float(np.mean(values)), 3) if len(values) == len(rows) else None
 
         table[cls] = {"fmf": round(100 * float(np.mean([r["fmf"] for r in rows])), 3),
