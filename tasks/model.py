@@ -235,15 +235,17 @@ def _n_columns(material: Material, basis: str, patch: int) -> int:
 # --------------------------------------------------------------------------- the store
 
 
-def open_model_store(path: str | os.PathLike, materials: Sequence[Material], settings: ModelSettings) -> zarr.Group:
+def open_model_store(path: str | os.PathLike, materials: Sequence[Material]) -> zarr.Group:
     """Create the model store, or reopen it when its light/view sampling matches (then it is added to)."""
     first = materials[0]
     src = zarr.open_group(first.path, mode="r", zarr_format=3)
     if Path(path).exists():
         group = zarr.open_group(str(path), mode="r+", zarr_format=3)
-        if group.attrs.get("schema") != SCHEMA_NAME or group.attrs.get("rows_id") != first.rows_id:
-            raise FileExistsError(f"{path} holds {'a model store of another light/view sampling' if group.attrs.get('schema') == SCHEMA_NAME else 'something else'}; "
-                                  "choose another --out")
+        if group.attrs.get("schema") != SCHEMA_NAME:
+            raise FileExistsError(f"{path} holds something other than a model store; choose another --out")
+        if group.attrs.get("rows_id") != first.rows_id:
+            raise FileExistsError(f"{path} holds a model store of another light/view sampling (rows_id "
+                                  f"{group.attrs.get('rows_id')!r}, this database {first.rows_id!r}); choose another --out")
         return group
     group = zarr.open_group(str(path), mode="w", zarr_format=3)
     for name in ("light_dir", "view_dir"):
@@ -521,7 +523,7 @@ def build_database(db: str | os.PathLike, out_dir: str | os.PathLike, client: An
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     model_path = str(out / "model.zarr")
-    group = open_model_store(model_path, materials, settings)
+    group = open_model_store(model_path, materials)
     fits = _run_all(client, fit_material, [(model_path, m, settings) for m in materials],
                     progress and progress("material bases"))
     merged = merge_bases(group, materials, settings)
