@@ -28,14 +28,18 @@ References
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any, Sequence
 
 import numpy as np
 
+from ._lowrank import Blocks, BlockSource, _as_block, as_block_source, check_finite, for_each_block
+
 __all__ = [
     "ALS_BACKENDS",
     "CHUNK_BYTES",
+    "FLOOR_SAMPLE",
     "WEIGHT_FLOOR_FRACTION",
     "ALSResult",
     "als_basis",
@@ -47,6 +51,8 @@ __all__ = [
 ALS_BACKENDS: tuple[str, ...] = ("auto", "numpy", "torch")
 #: Default weight floor of :func:`relative_error_weights`, as a fraction of the median non-zero ``|D|``.
 WEIGHT_FLOOR_FRACTION = 1e-3
+#: Non-zero ``|D|`` per block that estimate a block source's default weight floor in :func:`als_basis`.
+FLOOR_SAMPLE = 1 << 16
 #: Working-memory budget of one chunk of texels (or rows) in :func:`als_basis`, in bytes.
 CHUNK_BYTES = 256 * 2**20
 
@@ -70,9 +76,9 @@ def _check_matrix(x: Any, name: str) -> np.ndarray:
     return a
 
 
-def _float_dtype(dtype: Any, a: np.ndarray) -> np.dtype:
+def _float_dtype(dtype: Any, data_dtype: np.dtype) -> np.dtype:
     if dtype is None:
-        return np.dtype(np.float32 if a.dtype == np.float32 else np.float64)
+        return np.dtype(np.float32 if data_dtype == np.float32 else np.float64)
     dt = np.dtype(dtype)
     if dt not in (np.float32, np.float64):
         raise ValueError(f"dtype must be float32 or float64, got {dt}")
@@ -129,7 +135,7 @@ def relative_error_weights(D: np.ndarray, floor: float | None = None) -> np.ndar
     median ignores specular highlights.
     """
     a = _check_matrix(D, "D")
-    dt = _float_dtype(None, a)
+    dt = _float_dtype(None, a.dtype)
     absD = np.abs(a.astype(dt, copy=False))
     if floor is None:
         floor = _default_floor(absD)
@@ -244,8 +250,9 @@ class ALSResult:
     sigma : (c,) ndarray
         Products of the column norms of ``U`` and the row norms of ``V``
         (paper 4, §4.2).
-    V : (c, n_tx) ndarray
-        Coefficients, rows normalised to unit length.
+    V : (c, n_tx) ndarray or None
+        Coefficients, rows normalised to unit length; ``None`` when ``D``
+        came as a block source (it is not kept, see :func:`als_basis`).
     objective : (iterations + 1,) ndarray of float64
         :math:`\\|W \\odot (UV - D)\\|_F^2` after the first solve for ``V``
         and after each further iteration (eq. 5).
@@ -255,16 +262,22 @@ class ALSResult:
         Whether the relative decrease of the objective fell below ``tol``.
     backend, device : str
         Where it ran (``'numpy'``/``'torch'``, ``'cpu'``/``'cuda:0'``...).
+    norm_sq : float
+        :math:`\\|D\\|_F^2` in float64 (from the first pass over a block source).
+    floor : float or None
+        Weight floor of the default weights :math:`1/\\max(|D|, floor)`; None for given ``W``.
     """
 
     U: np.ndarray
     sigma: np.ndarray
-    V: np.ndarray
+    V: np.ndarray | None
     objective: np.ndarray
     iterations: int
     converged: bool
     backend: str
     device: str
+    norm_sq: float = 0.0
+    floor: float | None = None
 
 
 def _chunk_size(per_item_floats: int, itemsize: int, n: int) -> int:
@@ -284,8 +297,101 @@ def _solve_packed(ops: _NumpyOps | _TorchOps, Gp: Any, R: Any, iu: Any, ju: Any,
     return out
 
 
+def _is_block_source(D: Any) -> bool:
+    """Whether ``D`` is a block source (callable, list/tuple of 2-D arrays) rather than one matrix.
+    An iterator counts as one, so that :func:`as_block_source` refuses it with its advice."""
+    if callable(D) or isinstance(D, Iterator):
+        return True
+    return isinstance(D, (list, tuple)) and len(D) > 0 and all(isinstance(b, np.ndarray) and b.ndim == 2 for b in D)
+
+
+class _Sweep:
+    """One pass of the V-step (eq. 7) over chunks of ``D``'s columns with ``U`` fixed, accumulating the
+    objective (eq. 5), the squared row norms of ``V`` and, when ``u_step``, the rows' normal equations (eq. 8)."""
+
+    def __init__(self, ops: _NumpyOps | _TorchOps, U: Any, iu: Any, ju: Any, floor: float | None,
+                 chunk_texels: int | None, bufs: list, u_step: bool) -> None:
+        n_lv, c = U.shape
+        self.ops, self.U, self.iu, self.ju, self.floor, self.bufs = ops, U, iu, ju, floor, bufs
+        self.chunk_texels, self.per_texel = chunk_texels, 3 * n_lv + len(ju) + 2 * c * c
+        self.P = U[:, iu] * U[:, ju]                               # (n_lv, c(c+1)/2) column products
+        self.obj, self.nv2 = 0.0, ops.zeros((c,))
+        self.Gr, self.Rr = (ops.zeros((n_lv, len(iu))), ops.zeros((n_lv, c))) if u_step else (None, None)
+
+    def block(self, Dx: Any, Wx: Any = None, V: Any = None) -> None:
+        """V-step over one block ``Dx`` (on the device) in chunks; ``Wx``: its weights (default
+        :math:`1/\\max(|D|, floor)`); its coefficients are written to ``V`` (same columns) when given."""
+        ops, xp, U, c = self.ops, self.ops.xp, self.U, self.U.shape[1]
+        n_lv, m = Dx.shape
+        step = min(m, self.chunk_texels) if self.chunk_texels else _chunk_size(self.per_texel, ops.dtype.itemsize, m)
+        if self.bufs[0].shape[0] < n_lv * step:                    # grown once, then reused: first touch is slow
+            self.bufs[:] = [ops.zeros((n_lv * step,)) for _ in range(3)]
+        for s in range(0, m, step):
+            sl = slice(s, min(s + step, m))
+            Dc = Dx[:, sl]
+            W2, WD2, res = (b[: Dc.shape[0] * Dc.shape[1]].reshape(Dc.shape) for b in self.bufs)
+            if Wx is not None:
+                xp.square(Wx[:, sl], out=W2)
+            else:                                                 # eq. (5): W = 1/D, floored
+                xp.clip(xp.abs(Dc, out=W2), min=self.floor, out=W2)
+                xp.reciprocal(xp.square(W2, out=W2), out=W2)
+            xp.multiply(W2, Dc, out=WD2)
+            Gp = W2.T @ self.P                                    # eq. (7): U^T diag(W_:,x)^2 U, all x
+            Vc = _solve_packed(ops, Gp, WD2.T @ U, self.iu, self.ju, c, Gp.shape[0]).T   # eq. (7)
+            if V is not None:
+                V[:, sl] = Vc
+            self.nv2 += (Vc * Vc).sum(1)
+            xp.subtract(xp.matmul(U, Vc, out=res), Dc, out=res)
+            self.obj += float(xp.multiply(xp.square(res, out=res), W2, out=res).sum())   # eq. (5)
+            if self.Gr is not None:
+                ops.addmm_(self.Gr, W2, (Vc[self.iu] * Vc[self.ju]).T)   # eq. (8): V diag(W_l,:)^2 V^T, all l
+                ops.addmm_(self.Rr, WD2, Vc.T)
+
+
+def _scan_blocks(source: BlockSource, floor: float | None) -> tuple[int, int | None, np.dtype, float]:
+    """``(n_lv, n_tx, dtype, floor)`` of a block source. With ``floor`` given only the first block is
+    read (``n_tx`` is then None); without, one whole pass validates the blocks and estimates the
+    default floor from them (:func:`_estimated_floor`)."""
+    n_lv: int | None = None
+    n_tx, samples, weights = 0, [], []
+    rng = np.random.default_rng(0)
+    for j, raw in enumerate(source()):
+        if n_lv is None:
+            n_lv = np.shape(raw)[0] if np.ndim(raw) == 2 else None
+        b = _as_block(raw, j, n_lv)
+        if j == 0:
+            dt = b.dtype
+            if floor is not None:
+                return int(b.shape[0]), None, dt, floor
+        check_finite(b, f"blocks[{j}]", n_tx)
+        nonzero = np.abs(b[b != 0])
+        if nonzero.size > FLOOR_SAMPLE:
+            weights.append(nonzero.size / FLOOR_SAMPLE)
+            nonzero = nonzero[rng.integers(0, nonzero.size, FLOOR_SAMPLE)]
+        else:
+            weights.append(1.0)
+        samples.append(nonzero)
+        n_tx += b.shape[1]
+    if n_lv is None or n_tx == 0:
+        raise ValueError("blocks gave no columns: the source must return a fresh iterator over the same non-empty "
+                         "blocks on every call")
+    return int(n_lv), n_tx, dt, _estimated_floor(samples, weights)
+
+
+def _estimated_floor(samples: list[np.ndarray], weights: list[float]) -> float:
+    """:data:`WEIGHT_FLOOR_FRACTION` times the median of the blocks' non-zero ``|D|``, each block's
+    sample weighted by the entries it stands for: the exact median when no block was subsampled."""
+    if all(w == 1.0 for w in weights):
+        return _default_floor(np.concatenate(samples))
+    values = np.concatenate(samples)
+    w = np.concatenate([np.full(s.size, wi) for s, wi in zip(samples, weights)])
+    order = np.argsort(values, kind="stable")
+    cum = np.cumsum(w[order])
+    return WEIGHT_FLOOR_FRACTION * float(values[order][np.searchsorted(cum, cum[-1] / 2)])
+
+
 def als_basis(
-    D: np.ndarray,
+    D: np.ndarray | Blocks,
     c: int,
     W: np.ndarray | None = None,
     *,
@@ -296,20 +402,27 @@ def als_basis(
     device: Any = None,
     dtype: Any = None,
     chunk_texels: int | None = None,
+    floor: float | None = None,
 ) -> ALSResult:
     """Rank-``c`` basis of one material under per-entry weights, by alternating least squares.
 
     Parameters
     ----------
-    D : (n_lv, n_tx) array_like
+    D : (n_lv, n_tx) array_like, or a block source
         One material's BTF matrix (rows light/view pairs, columns texels x
-        channels), finite.
+        channels), finite: in memory, or out of core as its column blocks,
+        i.e. a callable returning a fresh iterator over ``(n_lv, m_j)``
+        blocks on every call, or a list/tuple of such arrays (the
+        convention of :mod:`btfcore.truncated_svd`). A block source is read
+        once per iteration plus once more for the default ``floor``.
     c : int
         Rank of the model, ``1 <= c <= min(n_lv, n_tx)``.
     W : (n_lv, n_tx) array_like, optional
-        Non-negative finite weights; default
-        :func:`relative_error_weights(D) <relative_error_weights>`, computed
-        chunk by chunk. A zero column (row) leaves that texel (row) unfitted.
+        Non-negative finite weights, for an in-memory ``D`` only; default
+        :func:`relative_error_weights(D, floor) <relative_error_weights>`,
+        computed chunk by chunk (for a block source always so, block by
+        block with one ``floor`` for all). A zero column (row) leaves that
+        texel (row) unfitted.
     n_iter : int
         Most updates of ``U`` (each followed by one of ``V``).
     tol : float
@@ -324,25 +437,35 @@ def als_basis(
     device : str or torch.device, optional
         Torch device; default ``'cuda'`` when available, else ``'cpu'``.
     dtype : {float32, float64}, optional
-        Working precision; default float32 for float32 ``D``, else float64.
+        Working precision; default float32 for float32 ``D`` (for a block
+        source: its first block), else float64.
     chunk_texels : int, optional
         Texels (and rows) per batched solve; default from a working-memory
         budget of :data:`CHUNK_BYTES`. The result does not depend on it
-        beyond rounding.
+        beyond rounding. A block source's blocks are chunked one by one.
+    floor : float, optional
+        Weight floor of the default weights (absolute, > 0); not with ``W``.
+        Default ``WEIGHT_FLOOR_FRACTION`` times the median non-zero
+        ``|D|``: exact for an in-memory ``D``; for a block source estimated
+        in a first pass (:data:`FLOOR_SAMPLE`, Notes). Passing it saves that
+        pass.
 
     Returns
     -------
     ALSResult
         ``U`` (n_lv, c), ``sigma`` (c,), ``V`` (c, n_tx) with
-        :math:`D \\approx U \\operatorname{diag}(\\sigma) V`, and the history
-        of the objective.
+        :math:`D \\approx U \\operatorname{diag}(\\sigma) V` (``V`` is None
+        for a block source), the history of the objective and
+        :math:`\\|D\\|_F^2`.
 
     Raises
     ------
     ValueError
         On ``c`` outside ``[1, min(n_lv, n_tx)]``, NaN/Inf in ``D`` or ``W``
-        or a negative weight (names the index), ``W`` of another shape than
-        ``D``, or an unknown backend or dtype.
+        or a negative weight (names the index; for a block source the
+        block and ``D``'s column), ``W`` of another shape than ``D``, ``W``
+        or ``floor`` together or ``W`` with a block source, a block source
+        whose passes differ in their columns, or an unknown backend or dtype.
 
     Notes
     -----
@@ -373,11 +496,42 @@ def als_basis(
     :data:`CHUNK_BYTES`) plus ``n_lv * c(c+1)/2`` accumulated entries for
     the rows' systems. The method is not guaranteed to find the global
     minimum (paper 4, §4.2).
+
+    Out of core: ``V`` is needed only within the pass that solves it (for
+    the objective and the rows' systems), so for a block source it is not
+    kept: the working memory is one block (on the device) and its chunk,
+    independent of ``n_tx``, and the result's ``sigma`` comes from row norms
+    of ``V`` accumulated in the last pass. An in-memory ``D`` keeps ``V``
+    (``c * n_tx`` values) and returns it. For the same data, chunks and
+    ``floor``, a block source gives the in-memory result (same chunks, same
+    order of accumulation). The default ``floor`` of a block source is
+    estimated from every block's non-zero ``|D|``: all of them when the
+    block has at most :data:`FLOOR_SAMPLE`, else that many drawn with a
+    fixed seed and weighted by the entries they stand for; the weighted
+    median is the exact one when no block was subsampled. The floor only
+    sets the scale below which weights stop growing (1e-3 of a typical
+    value), which needs no more precision than such a sample gives (2e-4
+    relative on the tests' data).
     """
-    a = _check_matrix(D, "D")
-    n_lv, n_tx = a.shape
-    if isinstance(c, bool) or not isinstance(c, (int, np.integer)) or not 1 <= c <= min(n_lv, n_tx):
-        raise ValueError(f"c must be an integer in [1, min(n_lv, n_tx)] = [1, {min(n_lv, n_tx)}], got {c!r}")
+    if n_iter < 0 or not tol >= 0:
+        raise ValueError(f"n_iter must be >= 0 and tol >= 0, got n_iter={n_iter!r}, tol={tol!r}")
+    if chunk_texels is not None and chunk_texels < 1:
+        raise ValueError(f"chunk_texels must be a positive integer, got {chunk_texels!r}")
+    if floor is not None and not (np.isfinite(floor) and floor > 0):
+        raise ValueError(f"floor must be a positive finite number, got {floor!r}")
+    if floor is not None and W is not None:
+        raise ValueError("floor sets the default weights: pass W or floor, not both")
+    floor = None if floor is None else float(floor)
+    source = as_block_source(D) if _is_block_source(D) else None
+    if source is not None:
+        if W is not None:
+            raise ValueError("W needs an in-memory D: a block source is weighted by relative_error_weights(block, "
+                             "floor) block by block")
+        n_lv, n_tx, raw_dtype, floor = _scan_blocks(source, floor)
+    else:
+        a = _check_matrix(D, "D")
+        (n_lv, n_tx), raw_dtype = a.shape, a.dtype
+    _check_c(c, n_lv, n_tx)
     c = int(c)
     if W is not None:
         W = _check_matrix(W, "W")
@@ -387,73 +541,67 @@ def als_basis(
         if neg.size:
             i, j = (int(v) for v in neg[0])
             raise ValueError(f"W must be non-negative: W[{i}, {j}] = {float(W[i, j])!r} ({len(neg)} negative)")
-    if n_iter < 0 or not tol >= 0:
-        raise ValueError(f"n_iter must be >= 0 and tol >= 0, got n_iter={n_iter!r}, tol={tol!r}")
-    if chunk_texels is not None and chunk_texels < 1:
-        raise ValueError(f"chunk_texels must be a positive integer, got {chunk_texels!r}")
-    dt = _float_dtype(dtype, a)
+    dt = _float_dtype(dtype, raw_dtype)
     ops = _ops(backend, device, dt)
 
-    floor = None if W is not None else _default_floor(np.abs(a))
-    Dx = ops.asarray(a.astype(dt, copy=False))
-    Wx = None if W is None else ops.asarray(W)
+    if source is None:
+        floor = None if W is not None else floor or _default_floor(np.abs(a))
+        norm_sq = float(np.einsum("ij,ij->", a, a, dtype=np.float64))
+        Dx = ops.asarray(a.astype(dt, copy=False))
+        Wx = None if W is None else ops.asarray(W)
+        V = ops.zeros((c, n_tx))
     iu_np, ju_np = np.triu_indices(c)
     iu, ju = ops.asarray(iu_np), ops.asarray(ju_np)
-    n_pack = len(iu_np)
-    step = chunk_texels or _chunk_size(3 * n_lv + n_pack + 2 * c * c, dt.itemsize, n_tx)
-    row_step = chunk_texels or _chunk_size(n_pack + 2 * c * c, dt.itemsize, n_lv)
+    row_step = chunk_texels or _chunk_size(len(iu_np) + 2 * c * c, dt.itemsize, n_lv)
 
     U = ops.asarray(np.random.default_rng(seed).uniform(-0.5, 0.5, (n_lv, c)))
-    V = ops.zeros((c, n_tx))
-    xp, bufs = ops.xp, [ops.zeros((n_lv * step,)) for _ in range(3)]   # reused: first touch is slow
+    bufs = [ops.zeros((0,))] * 3
     history: list[float] = []
     converged = False
     for it in range(n_iter + 1):
-        P = U[:, iu] * U[:, ju]                                   # (n_lv, c(c+1)/2) column products
-        Gr, Rr = ops.zeros((n_lv, n_pack)), ops.zeros((n_lv, c))
-        obj = 0.0
-        for s in range(0, n_tx, step):
-            sl = slice(s, min(s + step, n_tx))
-            Dc = Dx[:, sl]
-            W2, WD2, res = (b[: Dc.shape[0] * Dc.shape[1]].reshape(Dc.shape) for b in bufs)
-            if Wx is not None:
-                xp.square(Wx[:, sl], out=W2)
-            else:                                                 # eq. (5): W = 1/D, floored
-                xp.clip(xp.abs(Dc, out=W2), min=floor, out=W2)
-                xp.reciprocal(xp.square(W2, out=W2), out=W2)
-            xp.multiply(W2, Dc, out=WD2)
-            Gp = W2.T @ P                                         # eq. (7): U^T diag(W_:,x)^2 U, all x
-            Vc = _solve_packed(ops, Gp, WD2.T @ U, iu, ju, c, Gp.shape[0]).T   # eq. (7)
-            V[:, sl] = Vc
-            xp.subtract(xp.matmul(U, Vc, out=res), Dc, out=res)
-            obj += float(xp.multiply(xp.square(res, out=res), W2, out=res).sum())   # eq. (5)
-            if it < n_iter:
-                ops.addmm_(Gr, W2, (Vc[iu] * Vc[ju]).T)           # eq. (8): V diag(W_l,:)^2 V^T, all l
-                ops.addmm_(Rr, WD2, Vc.T)
-        history.append(obj)
+        sweep = _Sweep(ops, U, iu, ju, floor, chunk_texels, bufs, u_step=it < n_iter)
+        if source is None:
+            sweep.block(Dx, Wx, V)
+        else:
+            pass_norm_sq, cols = for_each_block(
+                source, n_lv, lambda b: sweep.block(ops.asarray(b.astype(dt, copy=False))), n_tx)
+            if it == 0:
+                norm_sq, n_tx = pass_norm_sq, cols
+                _check_c(c, n_lv, n_tx)
+        history.append(sweep.obj)
         if it == n_iter:
             break
         if it > 0:
             prev = history[-2]
-            if obj == 0.0 or (prev - obj) < tol * prev:
+            if sweep.obj == 0.0 or (prev - sweep.obj) < tol * prev:
                 converged = True
                 break
-        U = _solve_packed(ops, Gr, Rr, iu, ju, c, row_step)       # eq. (8)
+        U = _solve_packed(ops, sweep.Gr, sweep.Rr, iu, ju, c, row_step)   # eq. (8)
 
-    U_np, V_np = ops.numpy(U).astype(dt, copy=False), ops.numpy(V).astype(dt, copy=False)
-    nu, nv = np.linalg.norm(U_np, axis=0), np.linalg.norm(V_np, axis=1)
+    U_np = ops.numpy(U).astype(dt, copy=False)
+    V_np = None if source is not None else ops.numpy(V).astype(dt, copy=False)
+    nu = np.linalg.norm(U_np, axis=0)
+    nv = np.sqrt(ops.numpy(sweep.nv2)).astype(dt) if V_np is None else np.linalg.norm(V_np, axis=1)
     order = np.argsort(-(nu * nv), kind="stable")
     nu, nv = nu[order], nv[order]
     return ALSResult(
         U=U_np[:, order] / np.where(nu > 0, nu, 1),
         sigma=(nu * nv).astype(dt),                               # Sigma: column norms of U x row norms of V
-        V=V_np[order] / np.where(nv > 0, nv, 1)[:, None],
+        V=None if V_np is None else V_np[order] / np.where(nv > 0, nv, 1)[:, None],
         objective=np.asarray(history),
         iterations=len(history) - 1,
         converged=converged,
         backend=ops.name,
         device=ops.device,
+        norm_sq=norm_sq,
+        floor=floor,
     )
+
+
+def _check_c(c: Any, n_lv: int, n_tx: int | None) -> None:
+    limit = n_lv if n_tx is None else min(n_lv, n_tx)
+    if isinstance(c, bool) or not isinstance(c, (int, np.integer)) or not 1 <= c <= limit:
+        raise ValueError(f"c must be an integer in [1, min(n_lv, n_tx)] = [1, {limit}], got {c!r}")
 
 
 # --------------------------------------------------------------------------- merging

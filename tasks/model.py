@@ -24,8 +24,8 @@ build resumes and adding a material recomputes only that material, its
 class and the global merge.
 
 Matrices stream through btfcore in texel bands (the BTF store's chunks are
-one view x a band of rows), so no material is ever held whole except for
-the ALS basis, whose in-memory size is checked first.
+one view x a band of rows), so no basis holds a material whole; only the
+ABTF evaluation does, within ``als_max_bytes``.
 """
 
 from __future__ import annotations
@@ -43,7 +43,7 @@ import zarr
 
 from btfcore._lowrank import RankError, TruncatedSVD
 from btfcore.abtf import blend_patches, patch_matrix
-from btfcore.als import als_basis, relative_error_weights
+from btfcore.als import als_basis
 from btfcore.colour import to_log_yuv
 from btfcore.eigenspace_merging import merge_eigenspaces
 from btfcore.truncated_svd import truncated_svd
@@ -78,7 +78,7 @@ class ModelSettings:
     method: str = "auto"
     memory_bytes: int = 1 << 30
     als_iterations: int = 30
-    als_max_bytes: int = 1 << 30
+    als_max_bytes: int = 1 << 30          # in-memory limit of the ABTF evaluation (the ALS basis streams)
     seed: int = 0
 
     def key(self) -> str:
@@ -339,20 +339,21 @@ def _up_to_rank(fit: Callable[[int], TruncatedSVD], k: int, chosen: bool, what: 
 
 
 def _fit_als(material: Material, c: int, settings: ModelSettings) -> TruncatedSVD:
-    """The relative-error ALS basis (paper 4 eqs. 5-8) of a material's linear RGB BTF, in memory."""
-    n_bytes = material.n_lv * _n_columns(material, "als", settings.patch) * 4 * 2     # D and W, float32
-    if n_bytes > settings.als_max_bytes:
-        raise ValueError(f"{material.path}: the ALS basis holds the material in memory ({n_bytes / 2**30:.1f} GiB "
-                         f"with its weights), over the {settings.als_max_bytes / 2**30:.1f} GiB allowed; raise "
-                         "--als-max-bytes or leave 'als' out of --bases")
-    D = np.concatenate(list(blocks(material.path, "als")()), axis=1).astype(np.float32)
-    D = np.maximum(D, 0.0)                                      # radiance: noise below 0 carries no signal
-    res = als_basis(D, c, relative_error_weights(D), n_iter=settings.als_iterations, seed=settings.seed)
+    """The relative-error ALS basis (paper 4 eqs. 5-8) of a material's linear RGB BTF, streamed in texel
+    bands (:func:`btfcore.als.als_basis` on a block source): one pass estimates the weight floor, then
+    one pass per iteration; ``norm_sq`` is accumulated by btfcore in the first of them."""
+    bands = blocks(material.path, "als")
+
+    def clipped() -> Iterator[np.ndarray]:
+        for band in bands():
+            yield np.maximum(band.astype(np.float32, copy=False), 0.0)   # radiance: noise below 0 carries no signal
+
+    res = als_basis(clipped, c, n_iter=settings.als_iterations, seed=settings.seed)
     objective = [float(v) for v in res.objective]
     return TruncatedSVD(np.asarray(res.U, np.float64), np.asarray(res.sigma, np.float64), "als",
                         {"c": int(c), "iterations": int(res.iterations), "objective": objective,
-                         "backend": res.backend}, int(res.iterations), 0.0, bool(res.converged),
-                        float(np.sum(D.astype(np.float64) ** 2)), f"{material.rows_id}/als")
+                         "floor": res.floor, "backend": res.backend}, int(res.iterations), 0.0,
+                        bool(res.converged), res.norm_sq, f"{material.rows_id}/als")
 
 
 # --------------------------------------------------------------------------- merges

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from btfcore.als import ALSResult, als_basis, merge_als_bases, relative_error_weights
+from btfcore.als import FLOOR_SAMPLE, WEIGHT_FLOOR_FRACTION, ALSResult, als_basis, merge_als_bases, relative_error_weights
 
 N_LV, N_TX = 300, 2000
 
@@ -110,6 +110,90 @@ def test_unfitted_texel_and_rank_deficiency_take_the_ridge(backend):
     np.testing.assert_array_equal(r.V[:, 5], 0.0)
     assert np.all(np.diff(r.objective) <= 1e-9 * r.objective[0])
     assert np.linalg.norm(W * (r.U * r.sigma @ r.V - D)) < 1e-5 * np.linalg.norm(W * D)
+
+
+# --------------------------------------------------------------------------- out of core
+
+
+def _column_blocks(D: np.ndarray, width: int) -> list[np.ndarray]:
+    return [D[:, s:s + width] for s in range(0, D.shape[1], width)]
+
+
+def _counted(blocks: list[np.ndarray], calls: list[int]):
+    """A callable block source of contiguous copies of ``blocks`` that counts its passes."""
+    def source():
+        calls.append(1)
+        return (np.ascontiguousarray(b) for b in blocks)
+    return source
+
+
+@pytest.mark.parametrize("backend", ["numpy", "torch"])
+def test_block_source_equals_in_memory(backend):
+    D = _noisy(8, seed=6)
+    width = 200                          # 60000 non-zero values a block <= FLOOR_SAMPLE: the exact default floor
+    assert D[:, :width].size <= FLOOR_SAMPLE
+    whole = als_basis(D, 6, n_iter=6, tol=0.0, backend=backend, chunk_texels=width)
+    blocks, calls = _column_blocks(D, width), []
+    results = [als_basis(blocks, 6, n_iter=6, tol=0.0, backend=backend),
+               als_basis(tuple(blocks), 6, n_iter=6, tol=0.0, backend=backend),
+               als_basis(_counted(blocks, calls), 6, n_iter=6, tol=0.0, backend=backend)]
+    assert len(calls) == 1 + 7                                   # the floor's pass and one per V-step
+    assert whole.norm_sq == pytest.approx(float(np.sum(D ** 2)), rel=1e-12)
+    for r in results:
+        assert r.V is None and r.iterations == whole.iterations == 6
+        assert r.floor == whole.floor
+        np.testing.assert_allclose(r.objective, whole.objective, rtol=1e-10)
+        np.testing.assert_allclose(r.U, whole.U, rtol=1e-8, atol=1e-10)
+        np.testing.assert_allclose(r.sigma, whole.sigma, rtol=1e-10)
+        assert r.norm_sq == pytest.approx(whole.norm_sq, rel=1e-12)
+
+
+def test_block_source_with_a_given_floor_and_an_estimated_one():
+    D = _noisy(8, seed=7).astype(np.float32)
+    blocks, calls = _column_blocks(D, 700), []                    # 210000 values a block: subsampled
+    exact_floor = WEIGHT_FLOOR_FRACTION * float(np.median(np.abs(D[D != 0])))
+    # the estimated default floor is within a few per cent of the exact one (here 2e-4)
+    estimated = als_basis(blocks, 4, n_iter=0, backend="numpy")
+    assert estimated.floor == pytest.approx(exact_floor, rel=0.03)
+    assert estimated.U.dtype == np.float32
+    # with one given floor, in memory and streamed agree (chunks = blocks); no pass for the floor
+    whole = als_basis(D, 4, n_iter=4, tol=0.0, backend="numpy", chunk_texels=700, floor=exact_floor)
+    streamed = als_basis(_counted(blocks, calls), 4, n_iter=4, tol=0.0, backend="numpy", floor=exact_floor)
+    assert len(calls) == 1 + 5                                   # the first block's look and one per V-step
+    np.testing.assert_allclose(streamed.objective, whole.objective, rtol=1e-6)
+    np.testing.assert_allclose(streamed.U, whole.U, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(streamed.sigma, whole.sigma, rtol=1e-5)        # float32 row norms, summed per chunk
+    # the default in-memory weights are relative_error_weights(D) with that floor
+    np.testing.assert_allclose(als_basis(D, 4, relative_error_weights(D), n_iter=4, tol=0.0, backend="numpy").objective,
+                               whole.objective, rtol=1e-5)
+
+
+def test_bad_block_sources_are_refused():
+    D = _positive_rank_c(3)[:20, :30]
+    blocks = _column_blocks(D, 10)
+    with pytest.raises(ValueError, match="W needs an in-memory D"):
+        als_basis(blocks, 2, np.ones_like(D))
+    with pytest.raises(ValueError, match="pass W or floor"):
+        als_basis(D, 2, np.ones_like(D), floor=1.0)
+    with pytest.raises(ValueError, match="generator can be read only once"):
+        als_basis(iter(blocks), 2)
+    bad = [b.copy() for b in blocks]
+    bad[1][4, 7] = np.nan
+    with pytest.raises(ValueError, match=r"blocks\[1\]\[4, 7\] = nan, i.e. B\[4, 17\]"):
+        als_basis(bad, 2)
+    with pytest.raises(ValueError, match=r"blocks\[1\] has shape \(19, 10\)"):
+        als_basis([blocks[0], blocks[1][:19]], 2)
+    with pytest.raises(ValueError, match=r"c must be .* \[1, 20\]"):
+        als_basis(blocks, 21)
+    with pytest.raises(ValueError, match=r"c must be .* \[1, 10\]"):     # n_tx found in the first pass
+        als_basis([blocks[0]], 12, floor=1e-3)
+    passes = []
+
+    def shrinking():                                             # a source that loses a block after one pass
+        passes.append(1)
+        return iter(blocks if len(passes) == 1 else blocks[:2])
+    with pytest.raises(ValueError, match="20 columns in this pass but 30 in the first"):
+        als_basis(shrinking, 2)
 
 
 # --------------------------------------------------------------------------- merging (eq. 9)
