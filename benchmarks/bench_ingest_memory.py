@@ -22,18 +22,13 @@ import platform
 import shutil
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 
+from _measure import WorkerRSS
+
 LIMIT = "1GiB"
 LIMIT_BYTES = 1 << 30
-
-
-def _rss() -> int:
-    import psutil
-
-    return psutil.Process().memory_info().rss
 
 
 def main() -> int:
@@ -53,27 +48,11 @@ def main() -> int:
         profile = scratch / "small-workers.yaml"
         profile.write_text(f"cluster: {{kind: local, n_workers: 2, threads_per_worker: 1, memory_limit: {LIMIT}}}\n"
                            "prefect: {api_url: null, startup_timeout_s: 90}\n")
-        samples: list[int] = []
-        with runtime(profile) as (_p, _u, client):
-            workers_before = set(client.scheduler_info()["workers"])
-            stop = threading.Event()
-
-            def sample() -> None:
-                while not stop.is_set():
-                    try:
-                        samples.extend(client.run(_rss).values())
-                    except Exception:  # a worker restarting between samples
-                        pass
-                    time.sleep(0.2)
-
-            sampler = threading.Thread(target=sample, daemon=True)
-            sampler.start()
+        with runtime(profile) as (_p, _u, client), WorkerRSS(client) as rss:
             start = time.perf_counter()
             ingest_capture(capture, scratch / "btf.zarr", client)
             seconds = time.perf_counter() - start
-            stop.set()
-            sampler.join()
-            restarted = set(client.scheduler_info()["workers"]) != workers_before
+        samples, restarted = rss.samples, rss.restarted
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     peak = max(samples)

@@ -1,0 +1,169 @@
+"""Benchmark: the batched relative-error ALS solve against the machine's GEMM rate.
+
+:func:`btfcore.als.als_basis` (paper 4, eqs. 5-8) on a positive synthetic
+matrix ``D`` (``--n-lv`` x ``--n-tx``, float32, rank ``--c`` plus 1 %
+noise, all entries positive) with ``W = relative_error_weights(D)``, as
+``tasks.model`` fits a material, on the default backend (torch; CPU here,
+torch's default threads). Reported:
+
+* ``s_per_iteration`` = (T(3 iterations) - T(1 iteration)) / 2, so that the
+  set-up, the first solve for ``V`` and the last one (which does not
+  accumulate the rows' systems) cancel; medians of ``--repeats`` runs
+  (``tol=0``: every iteration runs);
+* ``gemm_gflop_per_iteration``: the matrix products of one iteration as
+  btfcore/als.py does them, with ``n_pack = c (c + 1) / 2``:
+  ``Gp = (W^2)^T P`` (2 n_lv n_tx n_pack), ``(W^2 D)^T U`` (2 n_lv n_tx c),
+  the residual ``U V_chunk`` (2 n_lv n_tx c), ``Gr += W^2 (V_i V_j)^T``
+  (2 n_lv n_tx n_pack) and ``Rr += (W^2 D) V^T`` (2 n_lv n_tx c), i.e.
+  ``2 n_lv n_tx (2 n_pack + 3 c)``; the batched Cholesky solves
+  (``(n_tx + n_lv) c^3 / 3`` and the substitutions) are not counted;
+* ``als_gflop_per_s`` = those flops / ``s_per_iteration``;
+* ``gemm_gflop_per_s``: plain float32 torch GEMMs of the two packed
+  normal-matrix products' shapes (one chunk of texels, as als_basis
+  chunks them), a torch 4096^3 and a numpy 4096^3 (numpy has its own BLAS,
+  which may be faster), best of 3 each, measured before and after;
+  ``over_gemm_peak`` divides by the largest of all, ``over_torch_gemm_peak``
+  by the largest torch one;
+* ``cholesky_s_per_iteration``: the batched Cholesky factorisation and solve
+  of ``n_tx + n_lv`` random SPD ``c x c`` systems, timed on its own, and its
+  share of an iteration.
+
+Issue 4's bar: the batched ALS solve runs at no less than 40 % of the GEMM
+rate.
+
+Usage: ``python benchmarks/bench_als.py [--n-lv 4096] [--n-tx 16384] [--c 64] [--repeats 3]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+
+import numpy as np
+from _measure import best_seconds, log
+
+
+def torch_gemm_rate(m: int, k: int, n: int, repeats: int = 3, transpose_a: bool = False) -> float:
+    """GFLOP/s of a float32 torch ``(m, k) @ (k, n)`` GEMM (``transpose_a``: A stored as (k, m)), best of 3."""
+    import torch
+
+    g = torch.Generator().manual_seed(0)
+    A = torch.randn((k, m) if transpose_a else (m, k), generator=g)
+    A = A.T if transpose_a else A
+    B = torch.randn((k, n), generator=g)
+    C = torch.empty((m, n))
+    return 2.0 * m * k * n / best_seconds(lambda: torch.matmul(A, B, out=C), repeats) / 1e9
+
+
+def numpy_gemm_rate(n: int, repeats: int = 3) -> float:
+    """GFLOP/s of a float32 numpy ``(n, n) @ (n, n)`` GEMM (numpy's own BLAS), best of ``repeats``."""
+    A = np.random.default_rng(0).standard_normal((n, n), dtype=np.float32)
+    C = np.empty_like(A)
+    return 2.0 * n**3 / best_seconds(lambda: np.matmul(A, A, out=C), repeats) / 1e9
+
+
+def gemm_rates(n_lv: int, step: int, n_pack: int) -> dict[str, float]:
+    rates = {
+        "numpy 4096x4096 @ 4096x4096": numpy_gemm_rate(4096),
+        "torch 4096x4096 @ 4096x4096": torch_gemm_rate(4096, 4096, 4096),
+        f"(W^2)^T P: ({step},{n_lv})^T-stored @ ({n_lv},{n_pack})": torch_gemm_rate(step, n_lv, n_pack,
+                                                                                transpose_a=True),
+        f"W^2 (V_i V_j)^T: ({n_lv},{step}) @ ({step},{n_pack})": torch_gemm_rate(n_lv, step, n_pack),
+    }
+    return {name: round(r, 1) for name, r in rates.items()}
+
+
+def cholesky_seconds(n_systems: int, c: int, step: int) -> float:
+    """Seconds to factor and solve ``n_systems`` SPD ``c x c`` systems in batches of ``step``, as als does."""
+    import torch
+
+    g = torch.Generator().manual_seed(0)
+    A = torch.randn((step, 2 * c, c), generator=g)
+    G = A.transpose(1, 2) @ A + torch.eye(c)
+    R = torch.randn((step, c, 1), generator=g)
+    start = time.perf_counter()
+    done = 0
+    while done < n_systems:
+        m = min(step, n_systems - done)
+        L, _ = torch.linalg.cholesky_ex(G[:m])
+        torch.cholesky_solve(R[:m], L)
+        done += m
+    return time.perf_counter() - start
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--n-lv", type=int, default=4096)
+    parser.add_argument("--n-tx", type=int, default=16384)
+    parser.add_argument("--c", type=int, default=64)
+    parser.add_argument("--repeats", type=int, default=3, help="runs of T(1) and T(3), interleaved [default: 3]")
+    parser.add_argument("--backend", default="auto", choices=("auto", "torch", "numpy"))
+    args = parser.parse_args()
+    import torch
+
+    from btfcore.als import CHUNK_BYTES, als_basis, relative_error_weights
+
+    n_lv, n_tx, c = args.n_lv, args.n_tx, args.c
+    load_start = round(os.getloadavg()[0], 2)
+    rng = np.random.default_rng(0)
+    A = rng.uniform(0.1, 1.0, (n_lv, c)).astype(np.float32)
+    B = rng.uniform(0.1, 1.0, (c, n_tx)).astype(np.float32)
+    D = A @ B
+    D *= (1 + 0.01 * rng.standard_normal(D.shape, dtype=np.float32))
+    np.maximum(D, 0.0, out=D)
+    W = relative_error_weights(D)
+    del A, B
+    n_pack = c * (c + 1) // 2
+    step = int(min(n_tx, max(1, CHUNK_BYTES // (4 * (3 * n_lv + n_pack + 2 * c * c)))))   # als_basis' chunk
+    gemm_before = gemm_rates(n_lv, step, n_pack)
+    log(f"GEMM GFLOP/s: {gemm_before}")
+
+    def run(n_iter: int) -> tuple[float, object]:
+        start = time.perf_counter()
+        res = als_basis(D, c, W, n_iter=n_iter, tol=0.0, seed=0, backend=args.backend)
+        return time.perf_counter() - start, res
+
+    run(1)                                                         # warm-up: first touch, thread pools
+    t1, t3, res3 = [], [], None
+    for rep in range(args.repeats):
+        t, res1 = run(1)
+        t1.append(t)
+        t, res3 = run(3)
+        t3.append(t)
+        log(f"run {rep + 1}: T(1) = {t1[-1]:.2f} s, T(3) = {t3[-1]:.2f} s (iterations {res1.iterations}, "
+            f"{res3.iterations})")
+    per_it = (float(np.median(t3)) - float(np.median(t1))) / 2
+    gemm_flops = 2.0 * n_lv * n_tx * (2 * n_pack + 3 * c)
+    chol = cholesky_seconds(n_tx + n_lv, c, step)
+    gemm_after = gemm_rates(n_lv, step, n_pack)
+    log(f"GEMM GFLOP/s after: {gemm_after}")
+    peak = max(max(gemm_before.values()), max(gemm_after.values()))
+    torch_peak = max(v for d in (gemm_before, gemm_after) for name, v in d.items() if not name.startswith("numpy"))
+    rate = gemm_flops / per_it / 1e9
+    result = {
+        "benchmark": "als", "date": time.strftime("%Y-%m-%d"),
+        "machine": f"{platform.node()} {os.cpu_count()} cores", "command": "python " + " ".join(sys.argv),
+        "data": f"positive rank-{c} + 1 % noise, {n_lv} x {n_tx} float32, W = relative_error_weights(D)",
+        "backend": f"{res3.backend} on {res3.device}, {torch.get_num_threads()} torch threads",
+        "c": c, "chunk_texels": step, "iterations_run": [1, res3.iterations],
+        "t1_s": [round(t, 2) for t in t1], "t3_s": [round(t, 2) for t in t3],
+        "s_per_iteration": round(per_it, 2),
+        "gemm_gflop_per_iteration": round(gemm_flops / 1e9, 1),
+        "als_gflop_per_s": round(rate, 1),
+        "gemm_gflop_per_s": {"before": gemm_before, "after": gemm_after, "peak": peak},
+        "over_gemm_peak": round(rate / peak, 3), "over_torch_gemm_peak": round(rate / torch_peak, 3),
+        "cholesky_s_per_iteration": round(chol, 2), "cholesky_share": round(chol / per_it, 3),
+        "objective_non_increasing": bool(np.all(np.diff(res3.objective) <= 1e-6 * res3.objective[:-1])),
+        "target": ">= 0.40 of the GEMM rate", "target_met": bool(rate / peak >= 0.40),
+        "load_average_1min": {"start": load_start, "end": round(os.getloadavg()[0], 2)},
+    }
+    print(json.dumps(result, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
