@@ -25,7 +25,9 @@ is not retried (``distributed.scheduler.allowed-failures`` = 0). Reported:
   the bases stream (``n_views`` chunks of about 4 MiB), and the ``(rows, l)``
   float64 factors of each SVD basis;
 * the bases written (each with its method and captured energy), whether a
-  worker was restarted, and the error if the fit failed.
+  worker was restarted, the error if the fit failed, and ``bar_met``
+  (issue 4: every basis fitted, no restart, matrix >= 2x the limit). The
+  script exits 0 either way (``make bench`` runs on); the JSON says.
 
 The peak does not grow with the texels, but it does with the views: a band
 spans every view (``--views 22`` doubles it).
@@ -155,7 +157,12 @@ def main() -> int:
                             "energy_captured": round(attrs["energy_captured"], 6), "s": round(end - begin, 1)}
             begin = end
     finally:
-        shutil.rmtree(scratch, ignore_errors=True)
+        if args.scratch is None:
+            shutil.rmtree(scratch, ignore_errors=True)
+        else:                                                # only what this run wrote there
+            for name in ("db", "model.zarr"):
+                shutil.rmtree(scratch / name, ignore_errors=True)
+            (scratch / "small-workers.yaml").unlink(missing_ok=True)
     peak = max(samples)
     band_mb = n_lv * rows * h * 3 * 4 / 1e6
     factor_mb = {b: round(n_lv * (9 if b == "abtf_log_y" else 1) * (v["k"] + max(10, v["k"] // 4)) * 8 / 1e6, 1)
@@ -174,10 +181,11 @@ def main() -> int:
         "rss_samples": len(samples), "worker_restarted": restarted,
         "fit_s": round(seconds, 1), "bases": bases,
         "als_iterations": args.als_iterations, "error": error,
+        "bar_met": set(bases) == set(BASES) and not restarted and not error and n_bytes >= 2 * limit,
         "load_average_1min": {"start": load_start, "end": round(os.getloadavg()[0], 2)},
     }
     print(json.dumps(result, indent=2))
-    return 0 if set(bases) == set(BASES) and not restarted and not error else 1
+    return 0
 
 
 if __name__ == "__main__":

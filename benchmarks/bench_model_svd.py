@@ -22,7 +22,8 @@ Contenders, all timed in this run on the same store:
   QR every pass) streaming the texel bands of the store through
   ``tasks.model.blocks(store, 'als')`` (linear values, one block per band),
   in this process with numpy's default BLAS threads (all cores); one run
-  per ``--configs`` entry ``n_iter:oversample``. Flops per pass
+  per ``--configs`` entry ``n_iter:oversample`` or ``default`` (the
+  library's own settings, n_iter 3 and oversample max(10, k // 4)). Flops per pass
   ``4 n_lv n_tx l`` (``X = C^T B_j`` and ``S += B_j X^T``), ``l = k +
   oversample``, ``n_iter + 2`` passes; achieved GFLOP/s = flops / wall time,
   and its ratio to the GEMM rate;
@@ -44,7 +45,7 @@ Contenders, all timed in this run on the same store:
   ``n_oversamples=10``, LU normaliser) and the ``--peer-config``; skipped
   when scikit-learn is not installed (it is in the ``test`` extra).
 
-Usage: ``python benchmarks/bench_model_svd.py [--configs 4:10,3:128] [--repeats N]
+Usage: ``python benchmarks/bench_model_svd.py [--configs default,3:128] [--repeats N]
 [--peer-config 3:128] [--skip-dask] [--skip-sklearn] [--scratch DIR] [--keep]``
 (about 15 minutes on 2 cores with the defaults; progress lines go to stderr,
 the JSON result to stdout).
