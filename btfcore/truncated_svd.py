@@ -9,7 +9,7 @@ read ``B`` as column blocks, never whole, and accumulate in float64:
   float64 rounding and one pass, but ``G`` takes :math:`8 n_{lv}^2` bytes and
   the pass costs :math:`n_{lv}^2 n_{tx} / 2` multiply-adds (in float64).
 * ``'randomized'``: Halko et al.'s range finder with ``oversample`` extra
-  vectors (default ``max(10, k // 4)``) and ``n_iter`` power iterations
+  vectors (default ``max(10, k // 2)``) and ``n_iter`` power iterations
   (default 3), QR re-orthonormalised every pass
   (DESIGN §5: plain power iterations lose accuracy in float32).
 * ``'empca'``: :func:`btfcore.empca.empca`, iterated to a tolerance.
@@ -49,15 +49,18 @@ def column_blocks(B: np.ndarray, width: int) -> list[np.ndarray]:
 
 
 def default_oversample(k: int) -> int:
-    """Default oversampling of 'randomized': ``max(10, k // 4)``.
+    """Default oversampling of 'randomized': ``max(10, k // 2)``.
 
     BTF spectra end in a slowly decaying noise floor, where the range finder's
     accuracy depends on :math:`\\sigma_{k+p}/\\sigma_k` more than on the number of
     passes: on a 26,136 x 8,192 float32 low-rank + noise matrix with k = 256,
     p = 64 with q = 3 (5 passes) gave 6e-5 excess error where p = 10 with
-    q = 4 (6 passes, the same arithmetic) gave 8e-4.
+    q = 4 (6 passes, the same arithmetic) gave 8e-4. At the thesis' scale
+    (26,136 x 49,152, power-law spectrum i^-0.75, benchmarks/bench_model_svd.py)
+    p = 64, q = 3 gave 0.110 % excess error, just over issue 4's 0.1 % bar,
+    and p = 128, q = 3 gave 0.021 % in 71-77 s: hence k // 2.
     """
-    return max(10, k // 4)
+    return max(10, k // 2)
 
 
 def choose_method(n_lv: int, k: int, *, memory_bytes: int, oversample: int | None = None, n_iter: int = 3) -> str:
