@@ -25,7 +25,7 @@ class and the global merge.
 
 Matrices stream through btfcore in texel bands (the BTF store's chunks are
 one view x a band of rows), so no basis holds a material whole; only the
-ABTF evaluation does, within ``als_max_bytes``.
+ABTF evaluation does, within ``eval_max_bytes``.
 """
 
 from __future__ import annotations
@@ -78,7 +78,7 @@ class ModelSettings:
     method: str = "auto"
     memory_bytes: int = 1 << 30
     als_iterations: int = 30
-    als_max_bytes: int = 1 << 30          # in-memory limit of the ABTF evaluation (the ALS basis streams)
+    eval_max_bytes: int = 1 << 30          # in-memory limit of the ABTF evaluation (the ALS basis streams)
     seed: int = 0
 
     def key(self) -> str:
@@ -364,15 +364,17 @@ def merge_key(keys: Sequence[str], k: int) -> str:
 
 
 def merge_bases(group: zarr.Group, materials: Sequence[Material], settings: ModelSettings,
-                exclude: str | None = None, store: bool = True) -> dict[str, dict[str, TruncatedSVD]]:
-    """Per-class and global merges of every basis (``abtf_log_y``: per class only).
+                exclude: str | None = None, store: bool = True,
+                bases: Sequence[str] = BASES) -> dict[str, dict[str, TruncatedSVD]]:
+    """Per-class and global merges of ``bases`` (``abtf_log_y``: per class only).
 
     With ``exclude`` (a material id) the merges leave that material out and
-    are returned, not stored: the leave-one-out bases of the evaluation.
+    are returned, not stored: the leave-one-out bases of the evaluation,
+    which needs only the bases it projects on.
     """
     out: dict[str, dict[str, TruncatedSVD]] = {}
     classes = sorted({m.cls for m in materials})
-    for basis in BASES:
+    for basis in bases:
         per_class: dict[str, tuple[TruncatedSVD, str]] = {}
         for cls in classes:
             members = [f"materials/{m.material_id}/{basis}" for m in materials
@@ -460,14 +462,15 @@ def leave_one_out(model_path: str, materials: Sequence[Material], material_id: s
     """
     group = zarr.open_group(model_path, mode="r", zarr_format=3)
     material = next(m for m in materials if m.material_id == material_id)
-    merged = merge_bases(group, materials, settings, exclude=material_id, store=False)
+    merged = merge_bases(group, materials, settings, exclude=material_id, store=False,
+                         bases=("log_y", "abtf_log_y"))
     own = read_basis(group, f"materials/{material_id}/log_y")
     return {
         "material": material_id, "class": material.cls,
         "class_basis": projection_errors(material.path, merged["log_y"][material.cls].U).tolist(),
         "global_basis": projection_errors(material.path, merged["log_y"]["__global__"].U).tolist(),
         "abtf_class_basis": abtf_projection_errors(material.path, merged["abtf_log_y"][material.cls].U,
-                                                   settings.patch, settings.als_max_bytes),
+                                                   settings.patch, settings.eval_max_bytes),
         "fmf": float(projection_errors(material.path, own.U)[-1]), "fmf_k": own.k,
     }
 

@@ -55,7 +55,8 @@ def _reconstructions(model_path: str, materials: list[Material], settings: Model
     figures = []
     for cls in sorted({m.cls for m in materials}):
         m = next(x for x in materials if x.cls == cls)
-        U = merge_bases(group, materials, settings, exclude=m.material_id, store=False)["log_y"][cls].U[:, :k]
+        U = merge_bases(group, materials, settings, exclude=m.material_id, store=False,
+                        bases=("log_y",))["log_y"][cls].U[:, :k]
         btf = zarr.open_group(m.path, mode="r", zarr_format=3)
         n_turn, n_cam, n_leds = btf.attrs["turntable_cameras_leds"]
         h, w = m.texture_shape
