@@ -1,0 +1,202 @@
+"""Acquisition plans on disk: JSON (complete) and CSV (one row per shot).
+
+The JSON file holds the whole :class:`btfcore.plan.CapturePlan` -- device name
+and shape, strategy, parameters, shots -- plus the predicted acquisition time
+of :mod:`btfcore.time_model` with its breakdown and the model parameters used.
+The CSV file is the operator's list: one row per shot with the turntable angle,
+the LEDs on, the cameras, the shutter times and the number of exposure steps;
+a few ``# key: value`` comment lines above the header carry what is needed to
+read it back into a plan. Both read back to an equal plan (:func:`read_plan`).
+
+See ``docs/acquisition-planning.md``.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+from btfcore.plan import PLAN_SCHEMA, CapturePlan, Shot, validate_plan
+from btfcore.simulate.devices import Device
+from btfcore.time_model import TimeModelParams, predict_time
+
+__all__ = ["CSV_COLUMNS", "plan_to_csv_text", "read_plan", "read_plan_json", "write_plan"]
+
+#: Columns of the plan CSV, in order.
+CSV_COLUMNS: tuple[str, ...] = (
+    "shot", "turntable", "turntable_angle_deg", "leds", "cameras", "shutter_ms", "exposure_steps", "group",
+)
+_CSV_META = ("schema", "schema_version", "device", "strategy", "n_turn", "n_cam", "n_leds", "turntable_angle_deg",
+             "parameters")
+
+
+def _ids(values) -> str:
+    return ";".join(str(int(v)) for v in values)
+
+
+def _floats(values) -> str:
+    return ";".join(repr(float(v)) for v in values)
+
+
+def plan_to_csv_text(plan: CapturePlan) -> str:
+    """The CSV form of a plan (comment lines with the plan's metadata, header, one row per shot)."""
+    buf = io.StringIO()
+    meta = plan.to_dict()
+    for key in _CSV_META:
+        buf.write(f"# {key}: {json.dumps(meta[key])}\n")
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(CSV_COLUMNS)
+    for i, s in enumerate(plan.shots):
+        w.writerow([i, s.turntable, repr(plan.turntable_angle_deg[s.turntable]), _ids(s.leds), _ids(s.cameras),
+                    _floats(s.shutter_ms), s.n_exposures, s.group])
+    return buf.getvalue()
+
+
+def write_plan(plan: CapturePlan, path_json: str | Path, path_csv: str | Path | None = None, *,
+               device: Device | None = None, time_params: TimeModelParams | None = None) -> dict[str, Any]:
+    """Write a plan as JSON (and CSV).
+
+    Parameters
+    ----------
+    plan : CapturePlan
+    path_json : str or Path
+        The complete plan with its predicted acquisition time.
+    path_csv : str or Path, optional
+        One row per shot: turntable angle (deg), LEDs on (``;``-separated),
+        cameras, shutter times (ms), exposure steps.
+    device : Device, optional
+        Validate the plan against it first.
+    time_params : TimeModelParams, optional
+        Parameters of the time prediction (default
+        :class:`~btfcore.time_model.TimeModelParams` (), whose overheads are
+        the fit on VMV Table 2's multiplexed times).
+
+    Returns
+    -------
+    doc : dict
+        What was written to ``path_json``.
+
+    Raises
+    ------
+    ValueError
+        If the plan names a turntable position, camera or LED ``device`` lacks.
+    """
+    if device is not None:
+        validate_plan(plan, device)
+    params = time_params or TimeModelParams()
+    doc = plan.to_dict()
+    doc["predicted_time"] = {**predict_time(plan, params).to_dict(), "model": params.to_dict()}
+    path_json = Path(path_json)
+    path_json.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path_json.with_name(path_json.name + ".tmp")
+    tmp.write_text(json.dumps(doc, indent=1))
+    tmp.replace(path_json)
+    if path_csv is not None:
+        path_csv = Path(path_csv)
+        path_csv.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path_csv.with_name(path_csv.name + ".tmp")
+        tmp.write_text(plan_to_csv_text(plan))
+        tmp.replace(path_csv)
+    return doc
+
+
+def read_plan_json(path: str | Path) -> tuple[CapturePlan, dict[str, Any]]:
+    """Read a plan JSON; return the plan and the whole document (with ``predicted_time``)."""
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: not a plan JSON file ({exc}); write it with tasks.plan.write_plan") from None
+    if not isinstance(doc, dict) or doc.get("schema") != PLAN_SCHEMA[0]:
+        raise ValueError(f"{path}: schema is {doc.get('schema') if isinstance(doc, dict) else None!r}, "
+                         f"expected {PLAN_SCHEMA[0]!r}; write it with tasks.plan.write_plan")
+    try:
+        return CapturePlan.from_dict(doc), doc
+    except ValueError as exc:
+        raise ValueError(f"{path}: {exc}") from None
+
+
+def _read_csv(path: Path) -> CapturePlan:
+    meta: dict[str, Any] = {}
+    body = []
+    for n, line in enumerate(path.read_text().splitlines(), 1):
+        if line.startswith("#"):
+            key, sep, value = line[1:].partition(":")
+            if not sep:
+                raise ValueError(f"{path}, line {n}: comment line is not '# key: value'")
+            try:
+                meta[key.strip()] = json.loads(value)
+            except json.JSONDecodeError:
+                raise ValueError(f"{path}, line {n}: value of {key.strip()!r} is not JSON") from None
+        elif line.strip():
+            body.append(line)
+    if meta.get("schema") != PLAN_SCHEMA[0]:
+        raise ValueError(f"{path}: the '# schema: \"{PLAN_SCHEMA[0]}\"' line is missing; "
+                         "write the CSV with tasks.plan.write_plan")
+    rows = list(csv.DictReader(body))
+    if body and tuple(csv.reader(body[:1]).__next__()) != CSV_COLUMNS:
+        raise ValueError(f"{path}: header must be {','.join(CSV_COLUMNS)}")
+    shots = []
+    angles = meta.get("turntable_angle_deg", [])
+    for i, r in enumerate(rows):
+        try:
+            t = int(r["turntable"])
+            shot = Shot(turntable=t, leds=tuple(int(v) for v in r["leds"].split(";")),
+                        cameras=tuple(int(v) for v in r["cameras"].split(";")),
+                        shutter_ms=tuple(float(v) for v in r["shutter_ms"].split(";")), group=r["group"])
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
+            raise ValueError(f"{path}: shot {i}: {exc}") from None
+        if int(r["exposure_steps"]) != shot.n_exposures:
+            raise ValueError(f"{path}: shot {i}: exposure_steps {r['exposure_steps']} but "
+                             f"{shot.n_exposures} shutter times")
+        if 0 <= t < len(angles) and not math.isclose(float(r["turntable_angle_deg"]), angles[t], abs_tol=1e-9):
+            raise ValueError(f"{path}: shot {i}: turntable_angle_deg {r['turntable_angle_deg']} is not the "
+                             f"angle {angles[t]} of turntable position {t}")
+        shots.append(shot)
+    meta["shots"] = [s.to_dict() for s in shots]
+    try:
+        return CapturePlan.from_dict(meta)
+    except ValueError as exc:
+        raise ValueError(f"{path}: {exc}") from None
+
+
+def read_plan(path: str | Path, device: Device | None = None) -> CapturePlan:
+    """Read a plan written by :func:`write_plan`, from its JSON or its CSV.
+
+    Parameters
+    ----------
+    path : str or Path
+        ``.json`` or ``.csv``.
+    device : Device, optional
+        Validate the plan against it.
+
+    Returns
+    -------
+    plan : CapturePlan
+
+    Raises
+    ------
+    ValueError
+        Naming the file and shot of a malformed entry, or (with ``device``) the
+        shot and id the device lacks.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise ValueError(f"{path}: no such plan file")
+    suffix = path.suffix.lower()
+    if suffix == ".json":
+        plan = read_plan_json(path)[0]
+    elif suffix == ".csv":
+        plan = _read_csv(path)
+    else:
+        raise ValueError(f"{path}: plan files end in .json or .csv, not {suffix or 'nothing'}")
+    if device is not None:
+        try:
+            validate_plan(plan, device)
+        except ValueError as exc:
+            raise ValueError(f"{path}: {exc}") from None
+    return plan
