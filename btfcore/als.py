@@ -280,8 +280,8 @@ class ALSResult:
     floor: float | None = None
 
 
-def _chunk_size(per_item_floats: int, itemsize: int, n: int) -> int:
-    return int(min(n, max(1, CHUNK_BYTES // (itemsize * per_item_floats))))
+def _chunk_size(per_item_floats: int, itemsize: int, n: int, budget: int) -> int:
+    return int(min(n, max(1, budget // (itemsize * per_item_floats))))
 
 
 def _solve_packed(ops: _NumpyOps | _TorchOps, Gp: Any, R: Any, iu: Any, ju: Any, c: int, step: int) -> Any:
@@ -310,10 +310,11 @@ class _Sweep:
     objective (eq. 5), the squared row norms of ``V`` and, when ``u_step``, the rows' normal equations (eq. 8)."""
 
     def __init__(self, ops: _NumpyOps | _TorchOps, U: Any, iu: Any, ju: Any, floor: float | None,
-                 chunk_texels: int | None, bufs: list, u_step: bool) -> None:
+                 chunk_texels: int | None, chunk_bytes: int, bufs: list, u_step: bool) -> None:
         n_lv, c = U.shape
         self.ops, self.U, self.iu, self.ju, self.floor, self.bufs = ops, U, iu, ju, floor, bufs
-        self.chunk_texels, self.per_texel = chunk_texels, 3 * n_lv + len(ju) + 2 * c * c
+        self.chunk_texels, self.chunk_bytes = chunk_texels, chunk_bytes
+        self.per_texel = 3 * n_lv + len(ju) + 2 * c * c
         self.P = U[:, iu] * U[:, ju]                               # (n_lv, c(c+1)/2) column products
         self.obj, self.nv2 = 0.0, ops.zeros((c,))
         self.Gr, self.Rr = (ops.zeros((n_lv, len(iu))), ops.zeros((n_lv, c))) if u_step else (None, None)
@@ -323,7 +324,8 @@ class _Sweep:
         :math:`1/\\max(|D|, floor)`); its coefficients are written to ``V`` (same columns) when given."""
         ops, xp, U, c = self.ops, self.ops.xp, self.U, self.U.shape[1]
         n_lv, m = Dx.shape
-        step = min(m, self.chunk_texels) if self.chunk_texels else _chunk_size(self.per_texel, ops.dtype.itemsize, m)
+        step = min(m, self.chunk_texels) if self.chunk_texels else _chunk_size(self.per_texel, ops.dtype.itemsize, m,
+                                                                                self.chunk_bytes)
         if self.bufs[0].shape[0] < n_lv * step:                    # grown once, then reused: first touch is slow
             self.bufs[:] = [ops.zeros((n_lv * step,)) for _ in range(3)]
         for s in range(0, m, step):
@@ -402,6 +404,7 @@ def als_basis(
     device: Any = None,
     dtype: Any = None,
     chunk_texels: int | None = None,
+    chunk_bytes: int = CHUNK_BYTES,
     floor: float | None = None,
 ) -> ALSResult:
     """Rank-``c`` basis of one material under per-entry weights, by alternating least squares.
@@ -440,9 +443,13 @@ def als_basis(
         Working precision; default float32 for float32 ``D`` (for a block
         source: its first block), else float64.
     chunk_texels : int, optional
-        Texels (and rows) per batched solve; default from a working-memory
-        budget of :data:`CHUNK_BYTES`. The result does not depend on it
-        beyond rounding. A block source's blocks are chunked one by one.
+        Texels (and rows) per batched solve; default from the working-memory
+        budget ``chunk_bytes``. The result does not depend on it beyond
+        rounding. A block source's blocks are chunked one by one.
+    chunk_bytes : int
+        Working-memory budget of one chunk's solve (default
+        :data:`CHUNK_BYTES`); ignored when ``chunk_texels`` is given. A
+        caller on a memory-limited worker passes a fraction of its limit.
     floor : float, optional
         Weight floor of the default weights (absolute, > 0); not with ``W``.
         Default ``WEIGHT_FLOOR_FRACTION`` times the median non-zero
@@ -493,7 +500,7 @@ def als_basis(
     data's rank) gets a ridge of :math:`\\sqrt{\\epsilon}` times its mean
     eigenvalue, only then. Working memory: the chunk (about
     ``itemsize * (3 n_lv + 2.5 c^2)`` bytes a texel, within
-    :data:`CHUNK_BYTES`) plus ``n_lv * c(c+1)/2`` accumulated entries for
+    ``chunk_bytes``) plus ``n_lv * c(c+1)/2`` accumulated entries for
     the rows' systems. The method is not guaranteed to find the global
     minimum (paper 4, §4.2).
 
@@ -515,6 +522,8 @@ def als_basis(
     """
     if n_iter < 0 or not tol >= 0:
         raise ValueError(f"n_iter must be >= 0 and tol >= 0, got n_iter={n_iter!r}, tol={tol!r}")
+    if chunk_bytes < 1:
+        raise ValueError(f"chunk_bytes must be a positive integer, got {chunk_bytes!r}")
     if chunk_texels is not None and chunk_texels < 1:
         raise ValueError(f"chunk_texels must be a positive integer, got {chunk_texels!r}")
     if floor is not None and not (np.isfinite(floor) and floor > 0):
@@ -552,14 +561,14 @@ def als_basis(
         V = ops.zeros((c, n_tx))
     iu_np, ju_np = np.triu_indices(c)
     iu, ju = ops.asarray(iu_np), ops.asarray(ju_np)
-    row_step = chunk_texels or _chunk_size(len(iu_np) + 2 * c * c, dt.itemsize, n_lv)
+    row_step = chunk_texels or _chunk_size(len(iu_np) + 2 * c * c, dt.itemsize, n_lv, chunk_bytes)
 
     U = ops.asarray(np.random.default_rng(seed).uniform(-0.5, 0.5, (n_lv, c)))
     bufs = [ops.zeros((0,))] * 3
     history: list[float] = []
     converged = False
     for it in range(n_iter + 1):
-        sweep = _Sweep(ops, U, iu, ju, floor, chunk_texels, bufs, u_step=it < n_iter)
+        sweep = _Sweep(ops, U, iu, ju, floor, chunk_texels, chunk_bytes, bufs, u_step=it < n_iter)
         if source is None:
             sweep.block(Dx, Wx, V)
         else:

@@ -22,13 +22,20 @@ from distributed import WorkerPlugin
 DEFAULT_PROFILE = Path(__file__).resolve().parents[1] / "infra" / "local.yaml"
 
 #: Environment every Dask worker process starts with: one thread per library
-#: (parallelism comes from Dask) and no huge-page hint (DESIGN §5).
+#: (parallelism comes from Dask), no huge-page hint (DESIGN §5), and a fixed
+#: glibc mmap threshold. By default the threshold grows (up to 32 MiB) each time
+#: a large array is freed, after which band-sized arrays come from the heap and
+#: fragment it: fitting one material's five bases then held 880 MB after its
+#: ALS basis and peaked at 980 MB; with the threshold fixed at 4 MiB, 323 MB
+#: and 599 MB (docs/benchmarks.md, out of core).
 WORKER_ENVIRON = {
     "OMP_NUM_THREADS": "1",
     "MKL_NUM_THREADS": "1",
     "OPENBLAS_NUM_THREADS": "1",
     "NUMEXPR_NUM_THREADS": "1",
     "NUMPY_MADVISE_HUGEPAGE": "0",
+    "MALLOC_MMAP_THRESHOLD_": "4194304",
+    "MALLOC_TRIM_THRESHOLD_": "65536",
 }
 
 

@@ -24,8 +24,9 @@ build resumes and adding a material recomputes only that material, its
 class and the global merge.
 
 Matrices stream through btfcore in texel bands (the BTF store's chunks are
-one view x a band of rows), so no basis holds a material whole; only the
-ABTF evaluation does, within ``eval_max_bytes``.
+one view x a band of rows), so neither a basis nor an evaluation holds a
+material whole: their working memory is a band plus a budget derived from
+the worker's memory limit (:func:`work_budget`).
 """
 
 from __future__ import annotations
@@ -42,7 +43,7 @@ import numpy as np
 import zarr
 
 from btfcore._lowrank import RankError, TruncatedSVD
-from btfcore.abtf import blend_patches, patch_matrix
+from btfcore.abtf import blend_patches, patch_matrix, patch_rows
 from btfcore.als import als_basis
 from btfcore.colour import to_log_yuv
 from btfcore.eigenspace_merging import merge_eigenspaces
@@ -78,7 +79,6 @@ class ModelSettings:
     method: str = "auto"
     memory_bytes: int = 1 << 30
     als_iterations: int = 30
-    eval_max_bytes: int = 1 << 30          # in-memory limit of the ABTF evaluation (the ALS basis streams)
     seed: int = 0
 
     def key(self) -> str:
@@ -190,16 +190,29 @@ def discover(db: str | os.PathLike, class_map: dict[str, str] | None = None,
 # --------------------------------------------------------------------------- streaming a material
 
 
-def _bands(btf: zarr.Array, multiple: int = 1) -> list[tuple[int, int]]:
+def _bands(btf: zarr.Array, multiple: int = 1, max_bytes: int | None = None) -> list[tuple[int, int]]:
     """Row bands of the texture that follow the store's chunks, each a multiple of ``multiple`` rows
-    (the last ``h % multiple`` rows, which fill no patch of a non-overlapping tiling, are left out)."""
-    usable = btf.shape[1] - btf.shape[1] % multiple
+    (the last ``h % multiple`` rows, which fill no patch of a non-overlapping tiling, are left out).
+
+    With ``max_bytes``, a chunk's band larger than that (as float32 across all light/view pairs) is
+    split into sub-bands that fit (at least ``multiple`` rows): each chunk is then read once per
+    sub-band, trading reads for memory when a band across every view is too large for a worker.
+    """
+    n_lv, h = btf.shape[:2]
+    usable = h - h % multiple
     step = max(multiple, btf.chunks[1] // multiple * multiple)
-    return [(r, min(r + step, usable)) for r in range(0, usable, step)]
+    sub = step
+    if max_bytes is not None:
+        row_bytes = 4 * n_lv * int(np.prod(btf.shape[2:]))
+        sub = min(step, max(multiple, max_bytes // row_bytes // multiple * multiple))
+    return [(s, min(s + sub, r + step, usable)) for r in range(0, usable, step)
+            for s in range(r, min(r + step, usable), sub)]
 
 
-def blocks(path: str, basis: str, patch: int = 3) -> Callable[[], Iterator[np.ndarray]]:
-    """A re-iterable source of ``(rows, m_j)`` column blocks of one basis' matrix of a material.
+def blocks(path: str, basis: str, patch: int = 3, max_bytes: int | None = None
+           ) -> Callable[[], Iterator[np.ndarray]]:
+    """A re-iterable source of ``(rows, m_j)`` column blocks of one basis' matrix of a material,
+    one block per texel band (:func:`_bands`; ``max_bytes`` bounds a band's float32 bytes).
 
     ``log_y``/``u_y``/``v_y``: one column per texel of that channel of
     :func:`btfcore.colour.to_log_yuv`; ``abtf_log_y``: non-overlapping
@@ -211,7 +224,7 @@ def blocks(path: str, basis: str, patch: int = 3) -> Callable[[], Iterator[np.nd
     multiple = patch if basis == "abtf_log_y" else 1
 
     def source() -> Iterator[np.ndarray]:
-        for r0, r1 in _bands(btf, multiple):
+        for r0, r1 in _bands(btf, multiple, max_bytes):
             band = np.asarray(btf[:, r0:r1])                                 # (n_lv, rows, w, 3)
             if basis == "als":
                 yield band.reshape(n_lv, -1)
@@ -320,7 +333,8 @@ def _fit_basis(material: Material, basis: str, settings: ModelSettings) -> Trunc
         return _fit_als(material, k, settings)
 
     def fit(k: int) -> TruncatedSVD:
-        return truncated_svd(blocks(material.path, basis, settings.patch), rows, k, settings.method,
+        return truncated_svd(blocks(material.path, basis, settings.patch, band_budget(settings)), rows, k,
+                             settings.method,
                              memory_bytes=settings.memory_bytes, seed=settings.seed,
                              rows_id=f"{material.rows_id}/{basis}")
 
@@ -338,17 +352,40 @@ def _up_to_rank(fit: Callable[[int], TruncatedSVD], k: int, chosen: bool, what: 
         raise ValueError(f"{what}: {exc}") from None
 
 
+#: Fraction of the memory one task may use that a solve's working arrays get: the rest holds the band being
+#: read, its float32 copy, torch's runtime and the allocator's slack (measured: docs/benchmarks.md, out of core).
+WORK_FRACTION = 16
+
+
+def work_budget(memory_bytes: int) -> int:
+    """Working-memory budget of one batched solve: ``1/WORK_FRACTION`` of the smaller of ``memory_bytes``
+    and the memory limit of the Dask worker running the task (when there is one)."""
+    try:
+        from distributed import get_worker
+        limit = get_worker().memory_manager.memory_limit or memory_bytes
+    except (ImportError, ValueError, AttributeError):
+        limit = memory_bytes
+    return max(1 << 20, int(min(limit, memory_bytes)) // WORK_FRACTION)
+
+
+def band_budget(settings: ModelSettings) -> int:
+    """Most float32 bytes of one texel band a fit reads at a time: half its working budget (a band
+    spans every view, so on a large dome one store chunk's band would not fit a small worker)."""
+    return work_budget(settings.memory_bytes) // 2
+
+
 def _fit_als(material: Material, c: int, settings: ModelSettings) -> TruncatedSVD:
     """The relative-error ALS basis (paper 4 eqs. 5-8) of a material's linear RGB BTF, streamed in texel
     bands (:func:`btfcore.als.als_basis` on a block source): one pass estimates the weight floor, then
     one pass per iteration; ``norm_sq`` is accumulated by btfcore in the first of them."""
-    bands = blocks(material.path, "als")
+    bands = blocks(material.path, "als", max_bytes=band_budget(settings))
 
     def clipped() -> Iterator[np.ndarray]:
         for band in bands():
             yield np.maximum(band.astype(np.float32, copy=False), 0.0)   # radiance: noise below 0 carries no signal
 
-    res = als_basis(clipped, c, n_iter=settings.als_iterations, seed=settings.seed)
+    res = als_basis(clipped, c, n_iter=settings.als_iterations, seed=settings.seed,
+                    chunk_bytes=work_budget(settings.memory_bytes))
     objective = [float(v) for v in res.objective]
     return TruncatedSVD(np.asarray(res.U, np.float64), np.asarray(res.sigma, np.float64), "als",
                         {"c": int(c), "iterations": int(res.iterations), "objective": objective,
@@ -409,7 +446,8 @@ def _merged(group: zarr.Group, where: str, members: Sequence[str | tuple[Truncat
 # --------------------------------------------------------------------------- evaluation
 
 
-def projection_errors(path: str, U: np.ndarray, basis: str = "log_y", patch: int = 3) -> np.ndarray:
+def projection_errors(path: str, U: np.ndarray, basis: str = "log_y", patch: int = 3,
+                      max_bytes: int | None = None) -> np.ndarray:
     """Relative projection error of a material's matrix onto the first k columns of ``U``, for every k.
 
     :math:`\\varepsilon_k = \\|U_k U_k^T B - B\\|_F / \\|B\\|_F` (paper 1 §4.1.1), from one
@@ -421,33 +459,54 @@ def projection_errors(path: str, U: np.ndarray, basis: str = "log_y", patch: int
     (k_max,) ndarray: entry ``k - 1`` is :math:`\\varepsilon_k`.
     """
     total, captured = 0.0, np.zeros(U.shape[1])
-    for block in blocks(path, basis, patch)():
+    for block in blocks(path, basis, patch, max_bytes)():
         b = block.astype(np.float64)
         total += float(np.sum(b * b))
         captured += np.sum((U.T @ b) ** 2, axis=1)
     return np.sqrt(np.maximum(1.0 - np.cumsum(captured) / total, 0.0))                  # eq. epsilon
 
 
-def abtf_projection_errors(path: str, U: np.ndarray, patch: int, max_bytes: int) -> list[float | None]:
+def _eval_ks(k_max: int) -> list[int]:
+    """The basis sizes an ABTF evaluation reports: 1, 2, 4, ... and ``k_max``."""
+    return sorted({2 ** i for i in range(k_max.bit_length()) if 2 ** i <= k_max} | {k_max})
+
+
+def abtf_projection_errors(path: str, U: np.ndarray, patch: int, budget_bytes: int) -> list[float | None]:
     """Relative log Y error of a material's texels after projecting ALL its ``patch x patch`` patches
     on an ABTF basis and blending them back, every patch weighted equally (paper 1 §4.1.2).
 
     Computed for k = 1, 2, 4, ... and the basis size; entry ``k - 1`` of the list, ``None``
-    elsewhere. Holds the material's log Y in memory (refused above ``max_bytes``).
+    elsewhere. Streams the material in texture-row bands, each read with the ``patch - 1`` rows
+    of halo on either side that the patches covering its rows need, and projects a band's
+    patches in slices of at most ``budget_bytes`` of float64 columns: each texel is blended from
+    every patch that covers it, so the result equals projecting the whole texture at once.
     """
     btf = zarr.open_group(path, mode="r", zarr_format=3)["btf"]
-    n_bytes = int(np.prod(btf.shape[:3])) * 8 * 3
-    if n_bytes > max_bytes:
-        raise ValueError(f"{path}: the ABTF evaluation holds the material's log Y and its patches in memory "
-                         f"({n_bytes / 2**30:.1f} GiB), over {max_bytes / 2**30:.1f} GiB")
-    log_y = to_log_yuv(np.asarray(btf[...]))[..., 0].astype(np.float64)              # (n_lv, h, w)
-    columns = patch_matrix(log_y, patch, overlap=True)
-    coefficients = U.T @ columns
-    norm = np.linalg.norm(log_y)
+    n_lv, h, w = btf.shape[:3]
+    ks = _eval_ks(U.shape[1])
+    sq_err, sq_norm = np.zeros(len(ks)), 0.0
+    step = max(1, budget_bytes // (patch * patch * n_lv * max(w - patch + 1, 1) * 8))   # texel rows a slice
+
+    def covering(t0: int, t1: int) -> tuple[int, int]:
+        """The patch rows whose patches cover texel rows t0:t1 (patch row i covers rows i:i + patch)."""
+        return max(0, t0 - patch + 1), min(t1, h - patch + 1)
+
+    for r0, r1 in _bands(btf, 1, budget_bytes // 2):
+        lo = covering(r0, r1)[0]
+        log_y = to_log_yuv(np.asarray(btf[:, lo:min(h, r1 + patch - 1)]))[..., 0].astype(np.float64)
+        for t0 in range(r0, r1, step):
+            t1 = min(t0 + step, r1)
+            a, b = covering(t0, t1)
+            window = log_y[:, patch_rows(a - lo, b - lo, patch, overlap=True)]    # texture rows a:b-1+patch
+            coefficients = U.T @ patch_matrix(window, patch, overlap=True)
+            truth = window[:, t0 - a:t1 - a]      # every patch covering these rows is in the window
+            sq_norm += float(np.sum(truth * truth))
+            for i, k in enumerate(ks):
+                blended = blend_patches(U[:, :k] @ coefficients[:k], window.shape, patch)
+                sq_err[i] += float(np.sum((blended[:, t0 - a:t1 - a] - truth) ** 2))
     errors: list[float | None] = [None] * U.shape[1]
-    for k in sorted({2 ** i for i in range(U.shape[1].bit_length()) if 2 ** i <= U.shape[1]} | {U.shape[1]}):
-        blended = blend_patches(U[:, :k] @ coefficients[:k], log_y.shape, patch)
-        errors[k - 1] = float(np.linalg.norm(blended - log_y) / norm)
+    for i, k in enumerate(ks):
+        errors[k - 1] = float(np.sqrt(sq_err[i] / sq_norm))
     return errors
 
 
@@ -465,13 +524,14 @@ def leave_one_out(model_path: str, materials: Sequence[Material], material_id: s
     merged = merge_bases(group, materials, settings, exclude=material_id, store=False,
                          bases=("log_y", "abtf_log_y"))
     own = read_basis(group, f"materials/{material_id}/log_y")
+    band = band_budget(settings)
     return {
         "material": material_id, "class": material.cls,
-        "class_basis": projection_errors(material.path, merged["log_y"][material.cls].U).tolist(),
-        "global_basis": projection_errors(material.path, merged["log_y"]["__global__"].U).tolist(),
+        "class_basis": projection_errors(material.path, merged["log_y"][material.cls].U, max_bytes=band).tolist(),
+        "global_basis": projection_errors(material.path, merged["log_y"]["__global__"].U, max_bytes=band).tolist(),
         "abtf_class_basis": abtf_projection_errors(material.path, merged["abtf_log_y"][material.cls].U,
-                                                   settings.patch, settings.eval_max_bytes),
-        "fmf": float(projection_errors(material.path, own.U)[-1]), "fmf_k": own.k,
+                                                   settings.patch, work_budget(settings.memory_bytes)),
+        "fmf": float(projection_errors(material.path, own.U, max_bytes=band)[-1]), "fmf_k": own.k,
     }
 
 

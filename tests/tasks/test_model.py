@@ -1,0 +1,66 @@
+"""tasks.model on small stores written here: streamed evaluations equal their in-memory definitions."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import zarr
+
+from btfcore.abtf import blend_patches, patch_matrix
+from btfcore.colour import to_log_yuv
+from tasks.model import _bands, abtf_projection_errors, blocks, work_budget
+
+
+def _store(path, btf: np.ndarray, band_rows: int) -> str:
+    group = zarr.open_group(str(path), mode="w", zarr_format=3)
+    group.create_array("btf", data=btf, chunks=(btf.shape[0], band_rows) + btf.shape[2:])
+    return str(path)
+
+
+@pytest.mark.parametrize("band_rows, budget", [(4, 1 << 30), (5, 1), (17, 3 * 9 * 12 * 14 * 8)])
+def test_streamed_abtf_evaluation_equals_projecting_the_whole_texture(tmp_path, band_rows, budget):
+    rng = np.random.default_rng(7)
+    n_lv, h, w, p = 12, 17, 16, 3
+    btf = rng.uniform(0.05, 1.0, (n_lv, h, w, 3)).astype(np.float32)
+    log_y = to_log_yuv(btf)[..., 0].astype(np.float64)
+    U = np.linalg.qr(rng.standard_normal((p * p * n_lv, 20)))[0]
+    columns = patch_matrix(log_y, p, overlap=True)
+    expected = {k: np.linalg.norm(blend_patches(U[:, :k] @ (U[:, :k].T @ columns), log_y.shape, p) - log_y)
+                / np.linalg.norm(log_y) for k in (1, 2, 4, 8, 16, 20)}
+
+    errors = abtf_projection_errors(_store(tmp_path / "m.zarr", btf, band_rows), U, p, budget)
+
+    assert {k + 1 for k, e in enumerate(errors) if e is not None} == set(expected)
+    for k, e in expected.items():
+        assert errors[k - 1] == pytest.approx(e, rel=1e-10)
+
+
+def test_work_budget_is_a_fraction_of_the_memory_outside_a_worker():
+    assert work_budget(1 << 30) == (1 << 30) // 16
+    assert work_budget(1000) == 1 << 20                     # never below 1 MiB
+
+
+@pytest.mark.parametrize("multiple, max_bytes", [(1, None), (1, 1), (3, None), (3, 2 * 12 * 16 * 3 * 4), (1, 10**9)])
+def test_bands_split_chunks_within_the_byte_bound_and_cover_every_usable_row(tmp_path, multiple, max_bytes):
+    n_lv, h, w = 12, 23, 16
+    btf = np.random.default_rng(0).uniform(0.1, 1, (n_lv, h, w, 3)).astype(np.float32)
+    array = zarr.open_group(_store(tmp_path / "m.zarr", btf, 7), mode="r")["btf"]
+    bands = _bands(array, multiple, max_bytes)
+    usable = h - h % multiple
+    assert [r for r0, r1 in bands for r in range(r0, r1)] == list(range(usable))
+    for r0, r1 in bands:
+        if multiple == 1:
+            assert r0 // 7 == (r1 - 1) // 7                   # never straddles a store chunk
+        assert (r1 - r0) % multiple == 0 or r1 == usable
+        if max_bytes is not None and (r1 - r0) > multiple:
+            assert 4 * n_lv * (r1 - r0) * w * 3 <= max_bytes
+
+
+def test_blocks_under_a_byte_bound_hold_the_same_columns(tmp_path):
+    btf = np.random.default_rng(1).uniform(0.1, 1, (12, 20, 16, 3)).astype(np.float32)
+    path = _store(tmp_path / "m.zarr", btf, 8)
+    for basis in ("log_y", "als", "abtf_log_y"):
+        whole = np.concatenate(list(blocks(path, basis)()), axis=1)
+        small = list(blocks(path, basis, max_bytes=12 * 16 * 3 * 4 * 3)())
+        assert len(small) > 3
+        np.testing.assert_array_equal(np.sort(np.concatenate(small, axis=1), axis=1), np.sort(whole, axis=1))
