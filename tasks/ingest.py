@@ -24,6 +24,13 @@ the store at its output path writes a sibling staging store (:func:`staging_path
 :func:`commit_staged` renames it over the old one once it is complete (and,
 in ``btf ingest``, checked); the machinery is :mod:`tasks.staging`, shared
 with ``btf resample``.
+
+A capture executed from an acquisition plan (``btf simulate --plan``) is
+ingested to a BTF store like any other when it takes every bracket and its
+patterns separate every LED (full single-light, full S-matrix,
+bootstrapping); otherwise :func:`ingest_capture` writes a measurement store
+(``btf-measurement``, :mod:`tasks.measurement`) instead: nothing is
+demultiplexed, ``btf reconstruct`` solves for the BTF.
 """
 
 from __future__ import annotations
@@ -94,6 +101,9 @@ def check_capture(capture_path: str | os.PathLike) -> CaptureStore:
         Its illumination patterns cannot be demultiplexed into single LEDs.
     """
     capture = open_capture_store(capture_path)
+    from tasks.measurement import needs_measurement_store
+    if needs_measurement_store(capture):
+        return capture                        # a sparse / partial plan capture: a measurement store, not demultiplexed
     try:
         demultiplex_operator(capture.illumination)
     except ValueError as exc:
@@ -209,6 +219,8 @@ def ingest_view(capture_path: str, out_path: str, settings: IngestSettings, t: i
     meta, sensor = capture.meta, capture.meta.sensor
     window = view_window(capture.homography[t, c], capture.roi_shape, tuple(meta.texture_shape),
                          meta.sample_size_m, settings)
+    if capture.is_plan_capture and (capture.exposure_time[t, c] == 0).any():
+        return _ingest_plan_view(capture, capture_path, out_path, settings, t, c, calibration, window)
     selection = (t, c, slice(None), slice(None), window[0], window[1])
     raw = reused_buffer("raw", (capture.n_illum, capture.n_exp, window[0].stop - window[0].start,
                                 window[1].stop - window[1].start), capture.raw.dtype)
@@ -240,6 +252,29 @@ def ingest_view(capture_path: str, out_path: str, settings: IngestSettings, t: i
     return t, c
 
 
+def _ingest_plan_view(capture: CaptureStore, capture_path: str, out_path: str, settings: IngestSettings, t: int,
+                      c: int, calibration: Calibration | None, window: tuple) -> tuple[int, int]:
+    """A view of a full plan capture whose brackets differ in length: merged per length, then demultiplexed."""
+    from btfcore.radiometric import apply_colour_matrix, apply_led_calibration
+    from tasks.measurement import process_brackets, read_window
+
+    illum = np.arange(capture.n_illum)
+    frames = read_window(capture, t, c, illum, window, capture_path)
+    rectified, valid = process_brackets(frames, capture.exposure_time[t, c], capture, t, c, settings, window)
+    P = demultiplex_operator(capture.illumination).astype(np.float32)          # (n_leds, n_illum)
+    textures = (P @ rectified.reshape(capture.n_illum, -1)).reshape(P.shape[0], *rectified.shape[1:])
+    if calibration is not None and calibration.led_gain is not None:
+        apply_led_calibration(textures, calibration.led_gain, out=textures)
+    if calibration is not None and calibration.colour_matrix is not None:
+        textures = apply_colour_matrix(textures, calibration.colour_matrix)
+    group = zarr.open_group(out_path, mode="r+", zarr_format=3)
+    row = (t * capture.n_cam + c) * capture.n_leds
+    group["btf"][row:row + capture.n_leds] = textures
+    group["valid_fraction"][t, c] = valid
+    group["written"][t, c] = 1
+    return t, c
+
+
 def ingest_capture(capture_path: str | os.PathLike, out_path: str | os.PathLike, client: Any, *,
                    settings: IngestSettings = IngestSettings(), overwrite: bool = False,
                    calibration: Calibration | None = None,
@@ -256,6 +291,16 @@ def ingest_capture(capture_path: str | os.PathLike, out_path: str | os.PathLike,
 
     start = time.perf_counter()
     capture = check_capture(capture_path)
+    from tasks.measurement import ingest_measurement, needs_measurement_store
+    if needs_measurement_store(capture):
+        if calibration is not None:
+            raise ValueError(
+                f"{capture_path}: a plan capture that is not a full set ({capture.meta.plan.get('strategy')!r} plan) "
+                "is ingested to a measurement store, which is not radiometrically corrected (a multiplexed "
+                "row mixes LEDs whose RGB gains differ); ingest it without --white/--colour-matrix and "
+                "reconstruct with a model of uncorrected BTFs of the same dome (docs/measurement-store.md)")
+        return ingest_measurement(capture_path, out_path, client, settings=settings, overwrite=overwrite,
+                                  progress=progress, commit=commit)
     if calibration is not None and calibration.led_gain is not None and len(calibration.led_gain) != capture.n_leds:
         raise ValueError(f"{calibration.info.get('white_standard')}: the white standard has "
                          f"{len(calibration.led_gain)} LEDs, the capture {capture_path} {capture.n_leds}; "
@@ -308,6 +353,9 @@ def btf_error_against_truth(btf_path: str | os.PathLike, capture_path: str | os.
     measures the chain and the white-standard calibration together.
     """
     group = zarr.open_group(str(btf_path), mode="r", zarr_format=3)
+    if group.attrs.get("schema") == "btf-measurement":
+        from tasks.measurement import measurement_error_against_truth
+        return measurement_error_against_truth(btf_path, capture_path)
     if group.attrs.get("schema") != SCHEMA_NAME or "resampled_from" in group.attrs:
         raise ValueError(f"{btf_path}: not the output of `btf ingest` (schema {group.attrs.get('schema')!r}"
                          f"{', resampled' if 'resampled_from' in group.attrs else ''}); the truth is sampled like "

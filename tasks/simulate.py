@@ -15,7 +15,7 @@ from __future__ import annotations
 import hashlib
 import json
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any, Callable
 
@@ -23,6 +23,7 @@ import numpy as np
 
 import btfcore
 from btfcore.hadamard import multiplexing_patterns
+from btfcore.plan import CapturePlan, validate_plan
 from btfcore.simulate.camera import holder_radiance, render_frame, sample_mask
 from btfcore.simulate.devices import DEVICE_NAMES, Device, get_device
 from btfcore.simulate.materials import MATERIAL_CLASSES, MaterialMaps, make_material, white_standard
@@ -72,6 +73,12 @@ class SimulationConfig:
     psf_sigma_px : float
         Standard deviation of the cameras' Gaussian point spread function in raw
         pixels; 0 turns the blur off.
+    plan : CapturePlan, optional
+        Execute this acquisition plan (``btf simulate --plan``): per turntable
+        position its shots -- the LEDs on, the cameras, the shutter brackets
+        -- instead of ``illumination`` and the automatic brackets. It must be
+        a plan for ``device`` (with ``n_turntable`` applied), and is validated
+        against it. The ground truth is still the full single-light BTF.
     """
 
     device: str = "tiny"
@@ -83,6 +90,7 @@ class SimulationConfig:
     texture_size: int | None = None
     n_turntable: int | None = None
     psf_sigma_px: float = 0.0
+    plan: CapturePlan | None = None
 
     def __post_init__(self) -> None:
         problems = []
@@ -104,6 +112,23 @@ class SimulationConfig:
             problems.append(f"n_turntable must be >= 1, got {self.n_turntable}")
         if problems:
             raise ValueError("invalid simulation config: " + "; ".join(problems))
+        if self.plan is not None:
+            if not isinstance(self.plan, CapturePlan):
+                raise ValueError(f"plan must be a btfcore.plan.CapturePlan, got {type(self.plan).__name__}")
+            if self.plan.device != self.device:
+                raise ValueError(f"the plan was made for device {self.plan.device!r}, the simulation is of "
+                                 f"{self.device!r}; pass --device {self.plan.device} or plan for {self.device}")
+            device = self.build_device()
+            validate_plan(self.plan, device)                    # names the shot and the LED/camera/position
+            shape, want = (self.plan.n_turn, self.plan.n_cam, self.plan.n_leds), (device.n_turn, device.n_cam,
+                                                                                   device.n_leds)
+            if shape != want:
+                raise ValueError(f"the plan is for {shape[0]} turntable positions x {shape[1]} cameras x {shape[2]} "
+                                 f"LEDs, the simulated device has {want[0]} x {want[1]} x {want[2]}"
+                                 f"{' (--turntable ' + str(self.n_turntable) + ')' if self.n_turntable else ''}; "
+                                 "plan for the device as simulated")
+            from tasks.measurement import plan_layout
+            plan_layout(self.plan)                              # one bracket per (t, c, pattern)
 
     def build_device(self) -> Device:
         """The :class:`Device` this config simulates, with its overrides applied."""
@@ -118,8 +143,11 @@ class SimulationConfig:
         return device
 
     def to_json(self) -> dict[str, Any]:
-        d = asdict(self)
+        d = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "plan"}
         d["classes"] = list(self.classes)
+        if self.plan is not None:                             # the whole plan is in each store's plan group
+            from tasks.measurement import plan_summary
+            d["plan"] = plan_summary(self.plan.to_dict())
         return d
 
 
@@ -176,6 +204,13 @@ def config_hash(config: SimulationConfig, spec: MaterialSpec) -> str:
 def capture_metadata(config: SimulationConfig, spec: MaterialSpec, device: Device) -> CaptureMetadata:
     """The store metadata of one simulated material."""
     sensor = device.sensor
+    plan: dict[str, Any] = {}
+    illumination, n_exp = None, int(sensor.n_exposures)
+    if config.plan is not None:
+        from tasks.measurement import plan_layout
+        illumination, shot, times = plan_layout(config.plan)
+        plan = {"plan": config.plan.to_dict(), "plan_shot": shot}
+        n_exp = int(times.shape[-1])
     return CaptureMetadata(
         device=device.name,
         bayer_pattern=sensor.bayer_pattern,
@@ -190,7 +225,8 @@ def capture_metadata(config: SimulationConfig, spec: MaterialSpec, device: Devic
         },
         sample_size_m=float(device.sample_size_m),
         texture_shape=tuple(int(v) for v in device.texture_shape),
-        illumination=illumination_patterns(device.n_leds, config.illumination),
+        illumination=(illumination_patterns(device.n_leds, config.illumination) if illumination is None
+                      else illumination),
         led_position=device.led_position,
         camera_K=device.camera_K,
         camera_R=device.camera_R,
@@ -198,7 +234,7 @@ def capture_metadata(config: SimulationConfig, spec: MaterialSpec, device: Devic
         turntable_angle=device.turntable_angle_deg,
         homography=device.homographies(),
         dark_exposure_time=np.asarray(DARK_EXPOSURES, dtype=np.float64),
-        n_exp=int(sensor.n_exposures),
+        n_exp=n_exp,
         roi_shape=tuple(int(v) for v in device.roi_shape),
         provenance={
             "code_version": code_version(),
@@ -210,6 +246,7 @@ def capture_metadata(config: SimulationConfig, spec: MaterialSpec, device: Devic
             "material_id": spec.material_id,
             "material_class": spec.class_name,
         },
+        **plan,
     )
 
 
@@ -271,15 +308,28 @@ def simulate_view(store_path: str, config: SimulationConfig, spec: MaterialSpec,
     # Light superposes: each pattern's radiance is the weighted sum of its LEDs'
     # radiance, formed before the sensor adds noise (DESIGN §4).
     weights = store.meta.illumination.astype(np.float32)                    # (n_illum, n_leds)
+    planned_times = None
+    if config.plan is not None:                 # a plan: only its patterns at this view, its brackets
+        from tasks.measurement import plan_layout
+        _, shot, plan_times = plan_layout(config.plan)
+        taken = np.flatnonzero(shot[turntable, camera] >= 0)
+        if not taken.size:
+            return turntable, camera                                        # the plan takes nothing here
+        weights, planned_times = weights[taken], plan_times[turntable, camera, taken]
     gain = device.led_rgb_gain.astype(np.float32)                           # (n_leds, 3)
     texture = np.einsum("il,lc,lhwc->ihwc", weights, gain, truth_2x, optimize=True)
     background = weights @ (gain * holder_radiance(light_dirs)[:, None])    # (n_illum, 3)
     frames = render_frame(texture, background, device.homography(turntable, camera),
                           device.roi_shape, device.sample_size_m)
     mask = sample_mask(device, turntable, camera)
-    times = choose_bracket(frames, device.sensor, mask=mask)                # (n_illum, n_exp)
+    if planned_times is None:
+        times = choose_bracket(frames, device.sensor, mask=mask)            # (n_illum, n_exp)
+    else:
+        times = planned_times                   # shorter brackets end in 0 s: those frames stay 0
     rng = np.random.default_rng([config.seed, spec.index, turntable, camera])
-    raw = expose(frames[:, None], times, device.sensor, _camera_dark_map(device, camera), rng)
+    raw = expose(frames[:, None], np.where(times > 0, times, 1e-6), device.sensor,
+                 _camera_dark_map(device, camera), rng)
+    raw[times == 0] = 0
     store.write_bracket(turntable, camera, raw, times)
     return turntable, camera
 
@@ -301,8 +351,11 @@ def estimated_bytes(config: SimulationConfig) -> int:
     device = config.build_device()
     h, w = device.texture_shape
     rows, cols = device.roi_shape
-    n_illum = illumination_patterns(device.n_leds, config.illumination).shape[0]
-    raw = device.n_turn * device.n_cam * n_illum * device.sensor.n_exposures * rows * cols * 2
+    if config.plan is not None:
+        raw = sum(s.n_exposures * len(s.cameras) for s in config.plan.shots) * rows * cols * 2
+    else:
+        n_illum = illumination_patterns(device.n_leds, config.illumination).shape[0]
+        raw = device.n_turn * device.n_cam * n_illum * device.sensor.n_exposures * rows * cols * 2
     truth = device.n_lv * h * w * 3 * 4 * (1 + 4)          # btf and btf_2x, float32
     return config.n_materials * (raw + truth)
 

@@ -244,6 +244,15 @@ class CaptureMetadata:
     provenance : dict
         ``code_version``, ``config_hash``, ``seed``, ``created``, ``source``
         plus free extra keys (plain JSON).
+    plan : dict, optional
+        A capture executed from an acquisition plan: the plan's plain-JSON
+        form (:meth:`btfcore.plan.CapturePlan.to_dict`), kept in the store's
+        ``plan`` group.
+    plan_shot : (n_turn, n_cam, n_illum) ndarray of int, optional
+        With ``plan``: the plan's shot index of each bracket ``(t, c, i)``,
+        ``-1`` where the plan takes no such bracket (it is never written).
+        Brackets of a plan capture may be shorter than ``n_exp``: their
+        trailing exposure times are 0 (steps not taken).
     """
 
     device: str
@@ -265,6 +274,8 @@ class CaptureMetadata:
     n_exp: int
     roi_shape: tuple[int, int]
     provenance: dict
+    plan: dict | None = None
+    plan_shot: np.ndarray | None = None
 
     @property
     def n_turn(self) -> int:
@@ -663,9 +674,13 @@ def _check_shapes(
 
 def _check_content(
     infos: Mapping[str, _Info], usable: Mapping[str, bool], sizes: _Sizes,
-    attrs: Mapping[str, Any], problems: list[Problem],
+    attrs: Mapping[str, Any], problems: list[Problem], *, planned: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
-    """Value checks on the small arrays. Returns the loaded arrays."""
+    """Value checks on the small arrays. Returns the loaded arrays.
+
+    ``planned`` (a plan capture, :func:`plan_shots`): brackets may end in exposure times of 0
+    (steps the plan does not take).
+    """
     data: dict[str, np.ndarray] = {}
     # Resume markers first: writers put a view's data on disk before its marker,
     # so a store that other workers are still writing validates consistently.
@@ -694,6 +709,8 @@ def _check_content(
             mask = written == 1
         hint = ("exposure times must be > 0 s and strictly increasing within a bracket; "
                 "check the manifest / EXIF exposure times for this bracket and re-write it")
+        if planned is not None:
+            et = trailing_steps_filled(et)
         fin = np.isfinite(et).all(axis=-1)
         nf = np.argwhere(mask & ~fin)
         if len(nf):
@@ -867,6 +884,28 @@ def _check_content(
     return data
 
 
+def trailing_steps_filled(et: np.ndarray) -> np.ndarray:
+    """Exposure times with the trailing zeros of a plan capture's shorter brackets (steps not
+    taken) replaced by increasing stand-ins, so that a bracket is valid iff its taken steps are
+    finite, > 0 and strictly increasing and every step after the first zero is zero too."""
+    et = np.asarray(et, dtype=np.float64)
+    taken = et != 0
+    trailing = np.flip(np.cumsum(np.flip(taken, -1), -1), -1) == 0   # no taken step from here on
+    first_ok = taken[..., :1] if et.shape[-1] else taken
+    trailing &= np.broadcast_to(first_ok, et.shape)                   # a bracket needs its first step
+    with np.errstate(invalid="ignore"):
+        top = np.nanmax(np.where(np.isfinite(et), np.abs(et), 0.0), axis=-1, keepdims=True) if et.size else et
+    stand_in = top + 1.0 + np.arange(et.shape[-1])
+    return np.where(trailing, stand_in, et)
+
+
+def bracket_steps(et: np.ndarray) -> np.ndarray:
+    """Exposure steps taken in each bracket: the leading times > 0 (a plan capture's shorter
+    brackets end in zeros)."""
+    et = np.asarray(et)
+    return np.cumprod(et > 0, axis=-1).sum(axis=-1)
+
+
 def _directions_written(ld: np.ndarray, vd: np.ndarray) -> bool:
     return bool(np.any(ld != 0) or np.any(vd != 0))
 
@@ -880,13 +919,17 @@ def _lv_index(n_turn: int, n_cam: int, n_leds: int) -> np.ndarray:
 def _check_completeness(
     data: Mapping[str, np.ndarray], attrs: Mapping[str, Any], sizes: _Sizes,
     problems: list[Problem], *, require_complete: bool, check_flag: bool = True,
+    planned: np.ndarray | None = None,
 ) -> None:
     hint = _resume_hint(attrs)
     flagged = attrs.get("complete") is True
     missing_any = False
     w = data.get("written")
     if w is not None:
-        miss = np.argwhere(w != 1)
+        todo = w != 1
+        if planned is not None and planned.shape == w.shape:
+            todo &= planned                                  # brackets the plan does not take are never written
+        miss = np.argwhere(todo)
         if len(miss):
             missing_any = True
             if require_complete or flagged:
@@ -988,6 +1031,21 @@ def _validate_group(
                 problems.append(Problem("truth", "attrs", "plain JSON attributes", str(e),
                                         "rewrite the material attrs as plain JSON"))
 
+    planned = None
+    plan = members.get("plan")
+    if plan is not None:
+        shot = members.get("plan/shot")
+        if not isinstance(shot, zarr.Array) or shot.ndim != 3:
+            problems.append(Problem("plan/shot", None, "an int32 array (n_turn, n_cam, n_illum)",
+                                    "nothing" if shot is None else f"shape {getattr(shot, 'shape', None)}",
+                                    "re-run `btf simulate --plan` (the plan group is incomplete)"))
+        else:
+            planned = np.asarray(shot[...]) >= 0
+            raw = infos.get("raw")
+            if raw is not None and len(raw.shape) == 6 and planned.shape != tuple(raw.shape[:3]):
+                problems.append(Problem("plan/shot", None, f"shape {tuple(raw.shape[:3])} (n_turn, n_cam, n_illum)",
+                                        f"shape {planned.shape}", "re-run `btf simulate --plan`"))
+                planned = None
     sizes = _Sizes()
     ts = attrs.get("texture_shape")
     if isinstance(ts, list) and len(ts) == 2 and all(isinstance(x, int) and x > 0 for x in ts):
@@ -996,9 +1054,9 @@ def _validate_group(
         sizes.seed("tex2_row", 2 * ts[0], "2 * attrs['texture_shape'][0]")
         sizes.seed("tex2_col", 2 * ts[1], "2 * attrs['texture_shape'][1]")
     usable = _check_shapes(infos, sizes, problems)
-    data = _check_content(infos, usable, sizes, attrs, problems)
+    data = _check_content(infos, usable, sizes, attrs, problems, planned=planned)
     _check_completeness(data, attrs, sizes, problems,
-                        require_complete=require_complete, check_flag=check_flag)
+                        require_complete=require_complete, check_flag=check_flag, planned=planned)
     return problems
 
 
@@ -1110,7 +1168,24 @@ def _meta_problems(meta: CaptureMetadata) -> tuple[list[Problem], dict[str, Any]
         sizes.seed("row", int(roi[0]), "meta.roi_shape[0]")
         sizes.seed("col", int(roi[1]), "meta.roi_shape[1]")
     usable = _check_shapes(infos, sizes, problems, check_layout=False)
-    _check_content(infos, usable, sizes, attrs, problems)
+    planned = None
+    if meta.plan_shot is not None or meta.plan is not None:
+        shot = np.asarray(meta.plan_shot) if meta.plan_shot is not None else None
+        want = (meta.n_turn, meta.n_cam, meta.n_illum)
+        if shot is None or meta.plan is None:
+            problems.append(Problem("plan", None, "plan and plan_shot together", "only one of them",
+                                    "pass both (tasks.measurement.plan_layout)"))
+        elif shot.shape != want or shot.dtype.kind not in "iu" or (shot.size and shot.min() < -1):
+            problems.append(Problem("plan/shot", None, f"integers >= -1 of shape {want}",
+                                    f"{shot.dtype} {shot.shape}", "build it with tasks.measurement.plan_layout"))
+        else:
+            planned = shot >= 0
+            try:
+                json.dumps(meta.plan, allow_nan=False)
+            except (TypeError, ValueError) as e:
+                problems.append(Problem("plan", None, "plain JSON (CapturePlan.to_dict())", str(e),
+                                        "pass plan.to_dict()"))
+    _check_content(infos, usable, sizes, attrs, problems, planned=planned)
     return problems, attrs, arrays
 
 
@@ -1169,6 +1244,12 @@ def create_capture_store(
             return existing
     group = zarr.open_group(_store_arg(path), mode="w", zarr_format=3)
     _create_arrays(group, meta, arrays, with_truth)
+    if meta.plan_shot is not None:
+        shot = np.asarray(meta.plan_shot, dtype=np.int32)
+        pg = group.create_group("plan")
+        pg.create_array("shot", shape=shot.shape, dtype="int32", chunks=shot.shape, fill_value=-1,
+                        dimension_names=["turntable", "camera", "illumination"], compressors=None)[...] = shot
+        pg.attrs.put(to_json_attr({"plan": meta.plan}))
     group.attrs.put(attrs)
     return CaptureStore(path, "r+", group=group)
 
@@ -1241,6 +1322,9 @@ def _meta_differences(a: CaptureMetadata, b: CaptureMetadata) -> list[str]:
             out.append(f"{f} differs")
     if int(a.n_exp) != int(b.n_exp):
         out.append(f"n_exp: {a.n_exp} != {b.n_exp}")
+    sa, sb = a.plan_shot, b.plan_shot
+    if (sa is None) != (sb is None) or (sa is not None and not np.array_equal(sa, sb)):
+        out.append("plan/shot differs")
     if tuple(map(int, a.roi_shape)) != tuple(map(int, b.roi_shape)):
         out.append(f"roi_shape: {tuple(a.roi_shape)} != {tuple(b.roi_shape)}")
     return out
@@ -1433,8 +1517,27 @@ class CaptureStore:
             sample_size_m=a.get("sample_size_m"),
             texture_shape=tuple(a.get("texture_shape") or ()),
             n_exp=int(self.raw.shape[3]), roi_shape=(int(self.raw.shape[4]), int(self.raw.shape[5])),
-            provenance=dict(a.get("provenance") or {}), **arr,
+            provenance=dict(a.get("provenance") or {}), **arr, **self._read_plan(),
         )
+
+    def _read_plan(self) -> dict[str, Any]:
+        try:
+            plan = self.group["plan"]
+        except KeyError:
+            return {}
+        return {"plan": plan.attrs.get("plan"), "plan_shot": np.asarray(plan["shot"][...])}
+
+    @property
+    def is_plan_capture(self) -> bool:
+        """Whether the capture executed an acquisition plan (it has a ``plan`` group)."""
+        return self.meta.plan_shot is not None
+
+    @property
+    def planned(self) -> np.ndarray:
+        """``(n_turn, n_cam, n_illum)`` bool: the brackets the capture takes (all without a plan)."""
+        if self.meta.plan_shot is None:
+            return np.ones((self.n_turn, self.n_cam, self.n_illum), dtype=bool)
+        return self.meta.plan_shot >= 0
 
     # ---- shapes ------------------------------------------------------------
     @property
@@ -1560,7 +1663,7 @@ class CaptureStore:
         list of (int, int)
             Row-major order.
         """
-        todo = (self.written != 1).any(axis=2)
+        todo = ((self.written != 1) & self.planned).any(axis=2)
         if self.has_truth:
             todo |= self.truth["written"][...] != 1
         return [(int(t), int(c)) for t, c in np.argwhere(todo)]
@@ -1605,9 +1708,11 @@ class CaptureStore:
         t, c : int
             Turntable and camera index.
         frames : (n_illum, n_exp, rows, cols) ndarray of uint16
-            Raw Bayer frames in DN.
+            Raw Bayer frames in DN. In a plan capture only the view's planned
+            illuminations (``planned[t, c]``), in order.
         exposure_time : (n_illum, n_exp) ndarray of float
-            Seconds, > 0, strictly increasing along the exposure axis.
+            Seconds, > 0, strictly increasing along the exposure axis (a plan
+            capture: the same rows as ``frames``; a shorter bracket ends in 0 s).
 
         Raises
         ------
@@ -1617,21 +1722,33 @@ class CaptureStore:
         """
         self._writable()
         t, c = self._view_index(t, c)
-        shape = (self.n_illum, self.n_exp, *self.roi_shape)
-        frames = self._check_frames(frames, shape, f"frames of view (t, c)=({t}, {c})")
+        plan = self.meta.plan_shot is not None
+        idx = np.flatnonzero(self.planned[t, c])
+        shape = (len(idx) if plan else self.n_illum, self.n_exp, *self.roi_shape)
+        frames = self._check_frames(frames, shape, f"frames of view (t, c)=({t}, {c})"
+                                    + (" (its planned illuminations)" if plan else ""))
         et = np.asarray(exposure_time, dtype=np.float64)
         if et.shape != shape[:2]:
             raise ValueError(f"exposure_time of view ({t}, {c}): expected shape {shape[:2]}, got {et.shape}")
-        for i in range(self.n_illum):
-            e = et[i]
+        check = trailing_steps_filled(et) if plan else et
+        for k in range(len(et)):
+            e, i = check[k], int(idx[k]) if plan else k
             if not (np.isfinite(e).all() and (e > 0).all() and (np.diff(e) > 0).all()):
                 raise ValueError(
-                    f"exposure_time[(t, c, i)=({t}, {c}, {i})] = {e.tolist()}: exposure times must "
-                    "be finite, > 0 s and strictly increasing; check the manifest / EXIF for this "
-                    "bracket")
-        write_chunk_aligned(self.raw, (t, c), frames)
-        write_chunk_aligned(self.group["exposure_time"], (t, c), et)
-        write_chunk_aligned(self.group["written"], (t, c), np.ones(self.n_illum, np.uint8))
+                    f"exposure_time[(t, c, i)=({t}, {c}, {i})] = {et[k].tolist()}: exposure times must "
+                    "be finite, > 0 s and strictly increasing" + (" (then 0 for steps not taken)" if plan else "")
+                    + "; check the manifest / EXIF for this bracket")
+        if not plan:
+            write_chunk_aligned(self.raw, (t, c), frames)
+            write_chunk_aligned(self.group["exposure_time"], (t, c), et)
+            write_chunk_aligned(self.group["written"], (t, c), np.ones(self.n_illum, np.uint8))
+            return
+        full_et = np.zeros((self.n_illum, self.n_exp))
+        full_et[idx] = et
+        for k, i in enumerate(idx.tolist()):
+            write_chunk_aligned(self.raw, (t, c, i), frames[k])        # one chunk per illumination
+        write_chunk_aligned(self.group["exposure_time"], (t, c), full_et)
+        write_chunk_aligned(self.group["written"], (t, c), self.planned[t, c].astype(np.uint8))
 
     def write_dark_frames(self, frames: np.ndarray, *, camera: int | None = None) -> None:
         """Write dark frames (all cameras, or one camera's chunk).
