@@ -80,6 +80,11 @@ def build_parser() -> argparse.ArgumentParser:
     _add_simulation_options(p)
     p.add_argument("--out", required=True, metavar="PATH", help="output folder of the database")
     p.add_argument("--overwrite", action="store_true", help="replace finished stores of another config")
+    p.add_argument("--plan", default=None, metavar="PLAN.json",
+                   help="execute an acquisition plan (`btf plan` JSON or CSV): per turntable position its shots "
+                        "(LEDs on, cameras, shutter brackets) instead of --illumination and automatic brackets; "
+                        "`btf ingest` then writes a BTF store (full sets) or a measurement store "
+                        "(docs/measurement-store.md)")
 
     p = sub.add_parser("demo", help="the main job on the embedded default data",
                        description="The main job on the embedded virtual dome: simulate two materials per class "
@@ -207,6 +212,29 @@ def build_parser() -> argparse.ArgumentParser:
                                    "(docs/capture-store.md) and print every problem found. Exit 1 if any.")
     p.add_argument("stores", nargs="+", metavar="STORE")
     p.add_argument("--allow-incomplete", action="store_true", help="accept stores whose run has not finished")
+    p = sub.add_parser("reconstruct", help="measurement store + model basis -> full BTF store",
+                       description="Reconstruct a full BTF from a measurement store (`btf ingest` of a sparse or "
+                                   "multiplexed plan capture) or a demultiplexed BTF store, with a class basis of "
+                                   "the model database (`btf build-db`). The solve operator is built once from the "
+                                   "basis and the measurement matrix G and applied band of texels by band in one "
+                                   "Dask graph. The output is built beside --out (BTF-stem.partial.zarr) and renamed "
+                                   "into place once complete; BTF-stem.report.json holds the settings and, for a "
+                                   "simulated capture, the errors against the ground truth. Log bases need "
+                                   "single-light measurements; multiplexed ones use --basis als --method direct "
+                                   "(docs/measurement-store.md).")
+    p.add_argument("measurement", metavar="MEASUREMENT", help="measurement store or BTF store (.zarr)")
+    p.add_argument("--model", required=True, metavar="MODEL_DIR", help="`btf build-db` output folder")
+    p.add_argument("--class", dest="cls", required=True, metavar="CLS", help="material class whose basis is used")
+    p.add_argument("--basis", default="als", choices=("als", "log_y", "abtf_log_y"),
+                   help="als (linear RGB; any measurement), log_y or abtf_log_y (single-light only) [default: als]")
+    p.add_argument("--method", default="pinv", choices=("pinv", "tikhonov", "direct", "projection", "thresholded"),
+                   help="pinv/tikhonov: sparse single-light; direct: multiplexed (paper 4 eq. 10); projection/"
+                        "thresholded: denoise a full demultiplexable measurement [default: pinv]")
+    p.add_argument("--lam", type=float, default=None, metavar="L",
+                   help="lambda of lambda*Sigma^-1 (tikhonov needs it: 0.01 for als, 40 for log bases; direct: 0)")
+    p.add_argument("--k", type=int, default=None, metavar="K", help="use only the first K basis vectors")
+    p.add_argument("--out", required=True, metavar="BTF", help="BTF store to write (.zarr)")
+    p.add_argument("--overwrite", action="store_true", help="replace another store at --out once the new one is complete")
     return parser
 
 
@@ -218,6 +246,9 @@ def _simulation_config(args: argparse.Namespace):
                   texture_size=args.texture_size, n_turntable=args.turntable, psf_sigma_px=args.psf_sigma)
     if args.classes:
         kwargs["classes"] = tuple(c.strip() for c in args.classes.split(",") if c.strip())
+    if getattr(args, "plan", None):
+        from tasks.plan import read_plan
+        kwargs["plan"] = read_plan(args.plan)           # validated against the device by SimulationConfig
     return SimulationConfig(**kwargs)
 
 
@@ -322,6 +353,10 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     try:
         config = _simulation_config(args) if args.command == "simulate" else None
+        if args.command == "reconstruct":  # bad input is named before a cluster starts
+            from tasks.reconstruct import ReconstructSettings, check_inputs
+            config = ReconstructSettings(cls=args.cls, basis=args.basis, method=args.method, lam=args.lam, k=args.k)
+            check_inputs(args.measurement, args.model, config)
         device = _calibration(args) if args.command == "import-raw" else None
         if args.command == "resample":  # bad input is named before a cluster starts
             from tasks.resample import check_inputs
@@ -352,6 +387,12 @@ def _run_flow(args: argparse.Namespace, address: str, config, device) -> dict:
     from flows.simulate import demo_flow, simulate_flow
 
     progress = not args.no_progress
+    if args.command == "reconstruct":
+        from flows.acquisition import reconstruct_flow
+        report = reconstruct_flow(args.measurement, args.model, args.out, address, config, overwrite=args.overwrite,
+                                  progress=progress)
+        return {"command": "reconstruct", "out": str(Path(args.out).resolve()), **report["stages"]["reconstruct"],
+                "errors_against_truth": report["errors_against_truth"]}
     if args.command == "build-db":
         from flows.model import build_db_flow
         from tasks.model import ModelSettings, with_k

@@ -61,6 +61,7 @@ __all__ = [
     "open_measurement",
     "plan_layout",
     "process_brackets",
+    "write_measurement",
 ]
 
 SCHEMA_NAME = "btf-measurement"
@@ -386,6 +387,67 @@ def ingest_measurement(capture_path: str | os.PathLike, out_path: str | os.PathL
     return {"kind": "measurement", "blocks_processed": len(pending), "blocks_skipped": int(written.size - len(pending)),
             "n_meas": int(group["measured"].shape[0]), "staged": staged,
             "seconds": round(time.perf_counter() - start, 3)}
+
+
+def write_measurement(path: str | os.PathLike, measured: np.ndarray, G: np.ndarray, light_dir: np.ndarray,
+                      view_dir: np.ndarray, turntable_cameras_leds: tuple[int, int, int], *,
+                      units: str = "linear radiance", source: str = "", material: dict[str, Any] | None = None,
+                      rows_per_block: int | None = None) -> zarr.Group:
+    """Write an in-memory measurement (``measured = G B``) as a finished measurement store.
+
+    For measurements made elsewhere (another device's software, a synthetic
+    experiment): the layout of :func:`create_measurement_store`, with
+    ``meas_index``/``shot``/``illumination`` left out (they describe a capture).
+
+    Parameters
+    ----------
+    measured : (n_meas, h, w, 3) ndarray
+    G : (n_meas, n_lv) ndarray
+    light_dir, view_dir : (n_lv, 3) ndarray
+        Directions of the full rows, ``n_lv = n_turn * n_cam * n_leds``.
+    turntable_cameras_leds : (3,) tuple of int
+
+    Raises
+    ------
+    ValueError
+        Inconsistent shapes, NaN/Inf, or something at ``path`` already.
+    """
+    measured, G = np.asarray(measured, dtype=np.float32), np.asarray(G, dtype=np.float32)
+    n_turn, n_cam, n_leds = (int(v) for v in turntable_cameras_leds)
+    n_lv = n_turn * n_cam * n_leds
+    if measured.ndim != 4 or measured.shape[3] != 3 or G.shape != (measured.shape[0], n_lv):
+        raise ValueError(f"measured {measured.shape} and G {G.shape} must be (n_meas, h, w, 3) and (n_meas, {n_lv})")
+    if light_dir.shape != (n_lv, 3) or view_dir.shape != (n_lv, 3):
+        raise ValueError(f"light_dir {light_dir.shape} and view_dir {view_dir.shape} must be ({n_lv}, 3)")
+    for name, a in (("measured", measured), ("G", G)):
+        bad = np.argwhere(~np.isfinite(a))
+        if bad.size:
+            raise ValueError(f"{name}{bad[0].tolist()} is not finite")
+    if Path(path).exists():
+        raise ValueError(f"{path} exists; choose another path")
+    from tasks.ingest import band_rows
+
+    n_meas, h, w, _ = measured.shape
+    rows = int(rows_per_block or min(n_meas, n_leds))
+    group = zarr.open_group(str(path), mode="w", zarr_format=3)
+    group.create_array("measured", shape=measured.shape, chunks=(rows, band_rows(rows, h, w), w, 3), dtype="float32",
+                       fill_value=0.0, compressors=None,
+                       dimension_names=["meas", "tex_row", "tex_col", "channel"])[...] = measured
+    group.create_array("G", shape=G.shape, chunks=(rows, n_leds), dtype="float32", fill_value=0.0, compressors=None,
+                       dimension_names=["meas", "lv"])[...] = G
+    lv_index = np.indices((n_turn, n_cam, n_leds)).reshape(3, -1).T.astype(np.int32)
+    for name, data in (("light_dir", np.asarray(light_dir, np.float64)), ("view_dir", np.asarray(view_dir, np.float64)),
+                       ("lv_index", lv_index)):
+        group.create_array(name, shape=data.shape, dtype=data.dtype, chunks=data.shape, compressors=None)[...] = data
+    key = hashlib.sha256(measured.tobytes() + G.tobytes()).hexdigest()[:16]
+    single = bool(np.all((G == 0) | (G == 1)) and np.all((G != 0).sum(axis=1) == 1))
+    group.attrs.put(to_json_attr({
+        "schema": SCHEMA_NAME, "schema_version": SCHEMA_VERSION, "units": units,
+        "lv_order": ["turntable", "camera", "light"], "texture_shape": [h, w],
+        "turntable_cameras_leds": [n_turn, n_cam, n_leds], "n_meas": n_meas, "rows_per_block": rows,
+        "single_light": single, "plan": None, "source": source, "ingest_hash": key, "settings": None,
+        "material": material, "complete": True}))
+    return group
 
 
 # --------------------------------------------------------------------------- reading

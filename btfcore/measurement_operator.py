@@ -1,0 +1,231 @@
+"""Solve operators for a general measurement matrix ``G`` (a plan capture's ``G B``).
+
+:func:`btfcore.reconstruct.solve_operator` describes a measurement by a row
+selection and one pattern matrix shared by every view. A capture executed from
+an acquisition plan has a measurement matrix ``G`` ``(n_meas, n_lv)`` of any
+shape: per turntable position its own patterns (bootstrapping quadrants,
+S-matrices over the LEDs selected there), a subset of cameras, single lights
+and patterns mixed. This module builds the same :class:`SolveOperator` from
+``G`` itself, with :math:`A = G U`:
+
+``'pinv'``
+    :math:`R = A^\\dagger` (paper 1, eq. (3)); single-light rows only.
+``'tikhonov'``
+    :math:`\\arg\\min_C \\|A C - y\\|^2 + \\|\\lambda \\Sigma^{-1} C\\|^2`
+    (paper 4, eq. (10)); single-light rows only.
+``'direct'``
+    The same solve for multiplexed (or mixed) rows, never demultiplexed
+    (paper 4, eq. (10) with :math:`S M` replaced by ``G``); ``lam`` defaults to 0.
+``'projection'``, ``'thresholded'``
+    Demultiplex with :math:`G^\\dagger` (``G`` must have full column rank),
+    then VMV §4.1's projection :math:`U U^T` or the 9th-decile thresholded
+    fit, folded into one operator :math:`R\\, G^\\dagger`.
+
+References
+----------
+.. [1] The thesis (``reference/000_07a399c75a6bdea8.txt``): App. paper 1, eq. (3);
+   VMV paper §4.1; paper 4, eqs. (4), (10).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import DTypeLike
+from scipy import sparse
+from scipy.sparse.csgraph import connected_components
+
+from ._lowrank import check_finite
+from .reconstruct import (
+    RECONSTRUCTION_METHODS,
+    THRESHOLD_DECILE,
+    SolveOperator,
+    _as_basis,
+    _as_lam,
+    _as_sigma,
+    _finish,
+    _regularised_solve,
+    threshold_rows,
+)
+
+__all__ = ["demultiplexing_matrix", "is_single_light", "measurement_solve_operator", "single_light_rows"]
+
+
+def _as_G(G, n_lv: int) -> np.ndarray:
+    g = np.asarray(G, dtype=np.float64)
+    if g.ndim != 2 or g.shape[1] != n_lv or g.shape[0] == 0:
+        raise ValueError(f"G has shape {g.shape}; it must be (n_meas, {n_lv}): one row per measured texture, one "
+                         "column per light/view pair of the basis")
+    check_finite(g, "G")
+    empty = np.flatnonzero(~(g != 0).any(axis=1))
+    if empty.size:
+        raise ValueError(f"G row {int(empty[0])} is all zero: a measurement of nothing; drop the row")
+    return g
+
+
+def is_single_light(G: np.ndarray) -> bool:
+    """Whether every row of ``G`` measures one light/view pair with weight 1 (a sparse single-light capture)."""
+    g = np.asarray(G)
+    nz = g != 0
+    return bool(nz.sum(axis=1).max(initial=0) == 1 and np.all(g[nz] == 1))
+
+
+def single_light_rows(G: np.ndarray) -> np.ndarray:
+    """The light/view pair each row of a single-light ``G`` measures, ``(n_meas,)`` int64.
+
+    Raises
+    ------
+    ValueError
+        If a row mixes several pairs (a multiplexed row), naming it.
+    """
+    g = np.asarray(G)
+    nz = g != 0
+    counts = nz.sum(axis=1)
+    bad = np.flatnonzero((counts != 1) | ~np.all(np.where(nz, g == 1, True), axis=1))
+    if bad.size:
+        r = int(bad[0])
+        raise ValueError(f"G row {r} measures {int(counts[r])} light/view pairs with weights "
+                         f"{np.unique(g[r][nz[r]]).tolist()}: not a single-light measurement")
+    return np.argmax(nz, axis=1).astype(np.int64)
+
+
+def demultiplexing_matrix(G: np.ndarray) -> sparse.csr_matrix:
+    """:math:`G^\\dagger` as a sparse matrix, block by block.
+
+    Parameters
+    ----------
+    G : (n_meas, n_lv) array_like
+        Measurement matrix with full column rank (every light/view pair
+        recoverable: a full single-light or S-matrix capture).
+
+    Returns
+    -------
+    P : (n_lv, n_meas) scipy.sparse.csr_matrix
+        :math:`G^\\dagger`, computed on each connected block of ``G`` (the rows
+        and columns that share non-zeros, e.g. one view's patterns and LEDs),
+        so that a dome's ``G`` costs one small pseudo-inverse per view.
+
+    Raises
+    ------
+    ValueError
+        If a block has fewer rows than columns or is rank-deficient, naming
+        its first light/view column: the measurement does not determine it.
+    """
+    g = np.asarray(G, dtype=np.float64)
+    n_meas, n_lv = g.shape
+    nz = sparse.csr_matrix(g != 0)
+    graph = sparse.bmat([[None, nz], [nz.T, None]], format="csr")      # rows and columns as one graph
+    n_comp, label = connected_components(graph, directed=False)
+    rows_of, cols_of = label[:n_meas], label[n_meas:]
+    out = sparse.lil_matrix((n_lv, n_meas))
+    for comp in range(n_comp):
+        r, c = np.flatnonzero(rows_of == comp), np.flatnonzero(cols_of == comp)
+        if not c.size:
+            continue
+        block = g[np.ix_(r, c)]
+        if r.size < c.size or np.linalg.matrix_rank(block) < c.size:
+            raise ValueError(
+                f"G does not determine light/view pair {int(c[0])} (its block: {r.size} measured rows for {c.size} "
+                f"pairs, rank {np.linalg.matrix_rank(block) if r.size else 0}): it cannot be demultiplexed; use "
+                "method 'direct' (or 'pinv'/'tikhonov'), which fit the basis to the measurement as it is")
+        out[np.ix_(c, r)] = np.linalg.pinv(block)
+    return out.tocsr()
+
+
+def measurement_solve_operator(
+    U: np.ndarray,
+    G: np.ndarray,
+    sigma: np.ndarray | None = None,
+    *,
+    method: str = "pinv",
+    lam: float | None = None,
+    variance: np.ndarray | None = None,
+    decile: float = THRESHOLD_DECILE,
+    fused: bool | None = None,
+    dtype: DTypeLike = np.float32,
+) -> SolveOperator:
+    """Reconstruction operator of a basis for a general measurement matrix.
+
+    Parameters
+    ----------
+    U : (n_lv, k) array_like
+        Basis; its rows are the columns of ``G``.
+    G : (n_meas, n_lv) array_like
+        Measurement matrix: measured textures ``y = G B``.
+    sigma : (k,) array_like, optional
+        Singular values of ``U``; needed when ``lam > 0``.
+    method : {'pinv', 'tikhonov', 'direct', 'projection', 'thresholded'}
+        See the module docstring.
+    lam : float, optional
+        :math:`\\lambda` of :math:`\\lambda \\Sigma^{-1}` (``'tikhonov'`` needs
+        it, ``'direct'`` defaults to 0).
+    variance : (n_lv,) array_like, optional
+        ``'thresholded'``: per-texture variance of the demultiplexed BTF
+        :math:`G^\\dagger y` (:func:`btfcore.reconstruct.texture_variance`).
+    decile : float
+        ``'thresholded'``: rows above this decile are left out.
+    fused : bool, optional
+        As :func:`btfcore.reconstruct.solve_operator`.
+    dtype : float32 or float64
+
+    Returns
+    -------
+    operator : SolveOperator
+        :func:`btfcore.reconstruct.apply` maps measured ``(n_meas, m)`` to ``(n_lv, m)``.
+
+    Raises
+    ------
+    ValueError
+        Unknown method; multiplexed rows with ``'pinv'``/``'tikhonov'``
+        (use ``'direct'``); fewer measured rows than basis vectors without
+        regularisation (suggests ``'tikhonov'``); a rank-deficient ``G U``;
+        a ``G`` that cannot be demultiplexed for ``'projection'``/``'thresholded'``.
+
+    Notes
+    -----
+    With :math:`A = G U`, ``'pinv'``, ``'tikhonov'`` and ``'direct'`` are the
+    regularised solve of :func:`btfcore.reconstruct.solve_operator`
+    (:math:`C = \\Sigma W \\operatorname{diag}(s/(s^2+\\lambda^2)) Q^T y` with
+    :math:`A\\Sigma = Q S W^T`; :math:`A^\\dagger` for :math:`\\lambda = 0`).
+    For ``G = S (I \\otimes M)`` they equal ``solve_operator(U, sigma,
+    rows=..., patterns=M)``.
+    """
+    if method not in RECONSTRUCTION_METHODS:
+        raise ValueError(f"unknown reconstruction method {method!r}; choose one of {RECONSTRUCTION_METHODS}")
+    u = _as_basis(U)
+    n_lv, k = u.shape
+    g = _as_G(G, n_lv)
+    lam_v = _as_lam(lam, method)
+    s = _as_sigma(sigma, k) if lam_v > 0 else None
+    kw: dict = {"method": method, "lam": lam_v}
+    if method in ("pinv", "tikhonov"):
+        if not is_single_light(g):
+            raise ValueError(f"method={method!r} is for single-light (sparse) measurements and G has multiplexed "
+                             "rows; use method='direct' (paper 4, eq. 10), which fits the basis to the multiplexed "
+                             "measurement without demultiplexing")
+        hint = (f"measure at least k={k} rows, use fewer basis vectors, or use method='tikhonov' with lam > 0 "
+                "(e.g. --method tikhonov --lam 0.01 for an ALS basis, 40 for a log basis)")
+        R, cond = _regularised_solve(g @ u, s, lam_v, "G U", hint)
+        return _finish(R, u, fused, dtype, condition=cond, **kw)
+    if method == "direct":
+        hint = f"measure at least k={k} rows, use fewer basis vectors, or regularise with lam > 0 (paper 4: 0.01)"
+        R, cond = _regularised_solve(g @ u, s, lam_v, "G U", hint)
+        return _finish(R, u, fused, dtype, condition=cond, **kw)
+    P = demultiplexing_matrix(g)                                      # (n_lv, n_meas): B_demux = G^+ y
+    dropped = None
+    if method == "projection":
+        R = (P.T @ u).T                                               # VMV §4.1: U^T G^+
+    else:
+        if variance is None:
+            raise ValueError("method='thresholded' needs variance, the (n_lv,) per-texture variance of the "
+                             "demultiplexed BTF G^+ y (btfcore.reconstruct.texture_variance)")
+        var = np.asarray(variance, dtype=np.float64)
+        if var.shape != (n_lv,):
+            raise ValueError(f"variance has shape {var.shape}; it must be ({n_lv},), one value per row of U")
+        kept, dropped = threshold_rows(var, decile)
+        Rk, cond = _regularised_solve(u[kept], None, 0.0, "U~ (U without the dropped rows)",
+                                      "use a higher decile or fewer basis vectors")
+        R_full = np.zeros((k, n_lv))
+        R_full[:, kept] = Rk                                          # VMV §4.1: U~^+ B~_demux
+        R = (P.T @ R_full.T).T
+        kw["condition"] = cond
+    return _finish(np.ascontiguousarray(R), u, fused, dtype, dropped=dropped, **kw)

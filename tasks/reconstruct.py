@@ -1,0 +1,468 @@
+"""``btf reconstruct``: a measurement and a class basis of the model database -> a full BTF store.
+
+The input is a measurement store (``btf-measurement``, :mod:`tasks.measurement`,
+``measured = G B``) or a demultiplexed BTF store (``btf-texture``, ``G = I``: the
+denoising methods). The solve operator is built once from the basis of the model
+store (``btf build-db``) and ``G`` -- :func:`btfcore.measurement_operator.measurement_solve_operator`
+for the linear ALS basis, :func:`btfcore.reconstruct.solve_operator` /
+:func:`btfcore.reconstruct.abtf_operator` on the measured rows for the log bases
+-- and applied band of texture rows by band in one Dask graph. The output is a
+``btf-texture`` store, built beside its destination (``X.partial.zarr``) and
+renamed into place only once complete (:mod:`tasks.staging`): a failed or killed
+run leaves no half-written output, and a rerun resumes the bands not written.
+
+Which basis for which measurement (paper 1 §3.1; paper 4 §4, "we cannot infer
+M log(B) from MB"):
+
+* ``als`` (linear RGB, relative-error ALS): any measurement -- sparse
+  single-light (``pinv``, ``tikhonov``), multiplexed or mixed (``direct``),
+  full demultiplexable ones also ``projection`` / ``thresholded``;
+* ``log_y`` (log Y with ``u_y``/``v_y`` for the chromaticities) and
+  ``abtf_log_y`` (3x3 patches of log Y, chromaticities per texel): single-light
+  measurements only (each row one light/view pair), mapped to log space first;
+  ``pinv`` or ``tikhonov`` (``projection`` too for a full BTF).
+
+See docs/measurement-store.md.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import zarr
+
+from btfcore.colour import from_log_yuv, to_log_yuv
+from btfcore.measurement_operator import (
+    demultiplexing_matrix,
+    is_single_light,
+    measurement_solve_operator,
+    single_light_rows,
+)
+from btfcore.reconstruct import (
+    RECONSTRUCTION_METHODS,
+    SolveOperator,
+    abtf_halo,
+    abtf_operator,
+    apply,
+    reconstruct_abtf,
+    solve_operator,
+    texture_variance,
+)
+from tasks.staging import commit_staged, finish_interrupted_commit, staging_path, store_attrs
+from tasks.store import to_json_attr
+
+__all__ = ["RECONSTRUCT_BASES", "ReconstructSettings", "build_operators", "check_inputs", "open_model",
+           "reconstruct_band", "reconstruct_chunk", "reconstruct_store", "read_input"]
+
+#: Bases ``btf reconstruct`` takes from a model store's class.
+RECONSTRUCT_BASES: tuple[str, ...] = ("als", "log_y", "abtf_log_y")
+_LOG_METHODS = ("pinv", "tikhonov", "projection")
+
+
+@dataclass(frozen=True)
+class ReconstructSettings:
+    """What a reconstruction depends on besides its inputs (hashable: it keys resumption).
+
+    Parameters
+    ----------
+    cls : str
+        Material class whose merged basis is used (``classes/<cls>/<basis>``).
+    basis : {'als', 'log_y', 'abtf_log_y'}
+    method : {'pinv', 'tikhonov', 'direct', 'projection', 'thresholded'}
+    lam : float, optional
+        λ of :math:`\\lambda \\Sigma^{-1}` (``tikhonov`` needs it; ``direct`` defaults to 0).
+    k : int, optional
+        Use only the first ``k`` basis vectors (default all).
+    decile : float
+        ``thresholded``: textures above this decile of variance are left out.
+    """
+
+    cls: str
+    basis: str = "als"
+    method: str = "pinv"
+    lam: float | None = None
+    k: int | None = None
+    decile: float = 9.0
+
+    def __post_init__(self) -> None:
+        if self.basis not in RECONSTRUCT_BASES:
+            raise ValueError(f"basis {self.basis!r} is unknown; choose one of {', '.join(RECONSTRUCT_BASES)}")
+        if self.method not in RECONSTRUCTION_METHODS:
+            raise ValueError(f"method {self.method!r} is unknown; choose one of {', '.join(RECONSTRUCTION_METHODS)}")
+        if self.basis != "als" and self.method not in _LOG_METHODS:
+            raise ValueError(f"--basis {self.basis} works in log space, where a multiplexed measurement cannot be "
+                             f"fitted (paper 4, §4); method {self.method!r} needs --basis als "
+                             f"(log bases take {', '.join(_LOG_METHODS)})")
+        if self.k is not None and self.k < 1:
+            raise ValueError(f"k must be >= 1, got {self.k}")
+
+
+# --------------------------------------------------------------------------- inputs
+
+
+def open_model(model: str | os.PathLike) -> zarr.Group:
+    """The model store of ``btf build-db``: ``MODEL_DIR/model.zarr`` or the store itself."""
+    path = Path(model)
+    if (path / "model.zarr").exists():
+        path = path / "model.zarr"
+    try:
+        group = zarr.open_group(str(path), mode="r", zarr_format=3)
+    except Exception:  # noqa: BLE001
+        raise ValueError(f"{model}: no model store (MODEL_DIR/model.zarr from `btf build-db`)") from None
+    if group.attrs.get("schema") != "btf-model":
+        raise ValueError(f"{path}: schema {group.attrs.get('schema')!r}, not a model store; give the --out folder "
+                         "of `btf build-db`")
+    return group
+
+
+def read_input(path: str | os.PathLike) -> tuple[zarr.Group, str]:
+    """Open the input of a reconstruction: ``(group, kind)`` with kind ``"measurement"`` or ``"btf"``.
+
+    Raises
+    ------
+    ValueError
+        Not a finished measurement or BTF store.
+    """
+    try:
+        group = zarr.open_group(str(path), mode="r", zarr_format=3)
+    except Exception:  # noqa: BLE001
+        raise ValueError(f"{path}: not a readable Zarr store; give the output of `btf ingest`") from None
+    schema = group.attrs.get("schema")
+    if schema not in ("btf-measurement", "btf-texture"):
+        raise ValueError(f"{path}: schema {schema!r}; give a measurement store (`btf ingest` of a plan capture) or "
+                         "a BTF store (btf-texture)")
+    if not group.attrs.get("complete"):
+        raise ValueError(f"{path}: the store is unfinished (complete = false); run the command that writes it again")
+    return group, ("measurement" if schema == "btf-measurement" else "btf")
+
+
+def _check_sampling(model: zarr.Group, data: zarr.Group, data_path: Any) -> None:
+    """The basis' light/view rows must be the measurement's full rows (same order, same directions)."""
+    ml, mv = model["light_dir"][...], model["view_dir"][...]
+    dl, dv = data["light_dir"][...], data["view_dir"][...]
+    if ml.shape != dl.shape:
+        raise ValueError(f"{data_path}: its light/view sampling has {dl.shape[0]} pairs, the model's bases "
+                         f"{ml.shape[0]}; reconstruct with a model built on this device's sampling, or resample "
+                         "(btf resample) both to one sampling")
+    bad = np.flatnonzero(~(np.isclose(ml, dl, atol=1e-9).all(1) & np.isclose(mv, dv, atol=1e-9).all(1)))
+    if bad.size:
+        r = int(bad[0])
+        raise ValueError(f"{data_path}: light/view pair {r} differs from the model's (light {dl[r].round(6).tolist()} "
+                         f"vs {ml[r].round(6).tolist()}, view {dv[r].round(6).tolist()} vs {mv[r].round(6).tolist()}"
+                         f"; {bad.size} pairs differ): the basis was built on another sampling; use a model of "
+                         "this device's sampling")
+
+
+def _basis(model: zarr.Group, cls: str, name: str, k: int | None, model_path: Any) -> tuple[np.ndarray, np.ndarray]:
+    from tasks.model import read_basis
+
+    where = f"classes/{cls}/{name}"
+    try:
+        fit = read_basis(model, where)
+    except KeyError:
+        classes = sorted(model["classes"].group_keys()) if "classes" in model else []
+        raise ValueError(f"{model_path}: no basis {where} in the model store (classes: {', '.join(classes) or 'none'}); "
+                         "choose --class from them, or build the model with that class") from None
+    U, sigma = np.asarray(fit.U, dtype=np.float64), np.asarray(fit.sigma, dtype=np.float64)
+    if k is not None:
+        if k > U.shape[1]:
+            raise ValueError(f"{model_path}: {where} has {U.shape[1]} basis vectors, k={k} asked; choose k <= "
+                             f"{U.shape[1]}")
+        U, sigma = U[:, :k], sigma[:k]
+    return U, sigma
+
+
+def _measurement_G(data: zarr.Group, kind: str) -> np.ndarray | None:
+    """``G`` of a measurement store; ``None`` for a BTF store (the identity)."""
+    return None if kind == "btf" else np.asarray(data["G"][...], dtype=np.float64)
+
+
+def _bands(h: int, n_rows: int, w: int) -> list[tuple[int, int]]:
+    from tasks.ingest import band_rows
+
+    step = band_rows(n_rows, h, w)
+    return [(r, min(r + step, h)) for r in range(0, h, step)]
+
+
+# --------------------------------------------------------------------------- operators
+
+
+def build_operators(settings: ReconstructSettings, model: zarr.Group, G: np.ndarray | None, n_lv: int,
+                    variance: np.ndarray | None = None, model_path: Any = "model") -> dict[str, SolveOperator]:
+    """The solve operators of a reconstruction, by part: ``{"rgb"}`` (ALS) or ``{"y", "u", "v"}`` (log bases).
+
+    Parameters
+    ----------
+    G : (n_meas, n_lv) ndarray or None
+        The measurement matrix; None for a full BTF (the identity).
+    variance : (n_lv,) ndarray, optional
+        ``thresholded``: per-texture variance of the demultiplexed BTF.
+
+    Raises
+    ------
+    ValueError
+        From the solve (too few rows for the basis without regularisation, rank),
+        a multiplexed ``G`` with a log basis.
+    """
+    s = settings
+    if s.basis == "als":
+        U, sigma = _basis(model, s.cls, "als", s.k, model_path)
+        if G is None:
+            return {"rgb": solve_operator(U, sigma, method=s.method, lam=s.lam, variance=variance, decile=s.decile)}
+        return {"rgb": measurement_solve_operator(U, G, sigma, method=s.method, lam=s.lam, variance=variance,
+                                                  decile=s.decile)}
+    if G is not None and not is_single_light(G):
+        raise ValueError(f"--basis {s.basis} reconstructs in log space, but the measurement has multiplexed rows "
+                         "(log(M B) is not M log(B), paper 4 §4); use --basis als with --method direct")
+    rows = None if G is None else single_light_rows(G)
+    if s.method == "projection" and rows is not None and len(rows) != n_lv:
+        raise ValueError("method 'projection' projects a full BTF; this measurement is sparse: use pinv or tikhonov")
+    if s.method == "projection":
+        rows = None
+    ops: dict[str, SolveOperator] = {}
+    for part, name in (("y", "log_y"), ("u", "u_y"), ("v", "v_y")):
+        if part == "y" and s.basis == "abtf_log_y":
+            U, sigma = _basis(model, s.cls, "abtf_log_y", s.k, model_path)
+            p = int(round(np.sqrt(U.shape[0] / n_lv)))
+            if p * p * n_lv != U.shape[0]:
+                raise ValueError(f"{model_path}: classes/{s.cls}/abtf_log_y has {U.shape[0]} rows, not p² x {n_lv}")
+            if s.method == "projection":
+                raise ValueError("--basis abtf_log_y reconstructs sparse measurements (pinv or tikhonov)")
+            ops[part] = abtf_operator(U, np.arange(n_lv) if rows is None else rows, p=p, sigma=sigma,
+                                      method=s.method, lam=s.lam)
+            continue
+        U, sigma = _basis(model, s.cls, name, s.k if part == "y" else None, model_path)
+        ops[part] = solve_operator(U, sigma, method=s.method, rows=rows, lam=s.lam)
+    return ops
+
+
+# --------------------------------------------------------------------------- applying
+
+
+def reconstruct_chunk(ops: dict[str, SolveOperator], measured: np.ndarray, *, out_rows: tuple[int, int] | None = None,
+                      height: int | None = None) -> np.ndarray:
+    """Reconstruct a band of textures from measured ones (in memory).
+
+    Parameters
+    ----------
+    ops : dict
+        From :func:`build_operators`.
+    measured : (n_meas, rows, w, 3) ndarray
+        Measured textures of the band (for an ABTF basis: of its halo rows,
+        :func:`btfcore.reconstruct.abtf_halo`, or the whole texture).
+    out_rows, height : optional
+        ABTF basis: the output rows and the texture height.
+
+    Returns
+    -------
+    B : (n_lv, rows_out, w, 3) ndarray of float32
+    """
+    if "rgb" in ops:
+        return apply(ops["rgb"], measured).astype(np.float32, copy=False)
+    x = to_log_yuv(np.asarray(measured, dtype=np.float32))           # paper 1 §3.1: log Y, U/Y, V/Y
+    if ops["y"].patch_size is not None:
+        y = reconstruct_abtf(ops["y"], x[..., 0], out_rows=out_rows, height=height)
+        lo = 0 if out_rows is None else out_rows[0] - abtf_halo(out_rows[0], out_rows[1], height,
+                                                                  ops["y"].patch_size).start
+        x = x[:, lo:lo + y.shape[1]]
+    else:
+        y = apply(ops["y"], x[..., 0])
+    res = np.stack([y, apply(ops["u"], x[..., 1]), apply(ops["v"], x[..., 2])], axis=-1)
+    return from_log_yuv(res.astype(np.float32, copy=False))
+
+
+def reconstruct_band(in_path: str, out_path: str, ops: dict[str, SolveOperator], band: int,
+                     bands: list[tuple[int, int]]) -> int:
+    """Reconstruct texture rows ``bands[band]`` and write them (whole chunks of ``btf``), then its marker."""
+    src = zarr.open_group(in_path, mode="r", zarr_format=3)
+    arr = src["measured"] if "measured" in src else src["btf"]
+    r0, r1 = bands[band]
+    h = arr.shape[1]
+    p = ops["y"].patch_size if "y" in ops else None
+    if p is not None:
+        halo = abtf_halo(r0, r1, h, p)
+        out = reconstruct_chunk(ops, np.asarray(arr[:, halo]), out_rows=(r0, r1), height=h)
+    else:
+        out = reconstruct_chunk(ops, np.asarray(arr[:, r0:r1]))
+    if not np.isfinite(out).all():
+        raise ValueError(f"{in_path}: the reconstruction of texture rows {r0}:{r1} is not finite (a log basis "
+                         "extrapolated beyond the float range); use --method tikhonov or --basis als")
+    dst = zarr.open_group(out_path, mode="r+", zarr_format=3)
+    dst["btf"][:, r0:r1] = out
+    dst["written"][band] = 1
+    return band
+
+
+def _variance(in_path: str, G: np.ndarray | None, bands: list[tuple[int, int]], client: Any) -> np.ndarray:
+    """Per-texture variance of the demultiplexed BTF ``G^+ y``, streamed over bands on the cluster."""
+    import dask
+
+    P = None if G is None else demultiplexing_matrix(G)
+
+    def band_block(r0: int, r1: int) -> np.ndarray:
+        src = zarr.open_group(in_path, mode="r", zarr_format=3)
+        arr = src["measured"] if "measured" in src else src["btf"]
+        y = np.asarray(arr[:, r0:r1], dtype=np.float64).reshape(arr.shape[0], -1)
+        return y if P is None else np.asarray(P @ y)
+
+    blocks = client.compute([dask.delayed(band_block)(r0, r1) for r0, r1 in bands], sync=True)
+    return texture_variance(iter(blocks))
+
+
+def check_inputs(in_path: str | os.PathLike, model_path: str | os.PathLike, settings: ReconstructSettings) -> None:
+    """Every check of :func:`reconstruct_store` that needs no cluster (``btf reconstruct`` runs it before one
+    starts): the input and model stores, their light/view samplings, the basis and the solve itself.
+
+    Raises
+    ------
+    ValueError
+        As :func:`reconstruct_store`.
+    """
+    data, kind = read_input(in_path)
+    model = open_model(model_path)
+    _check_sampling(model, data, in_path)
+    n_turn, n_cam, n_leds = data.attrs["turntable_cameras_leds"]
+    if settings.method != "thresholded":                  # its operator needs a pass over the data
+        build_operators(settings, model, _measurement_G(data, kind), n_turn * n_cam * n_leds, None, model_path)
+
+
+def reconstruct_hash(data: zarr.Group, model: zarr.Group, settings: ReconstructSettings,
+                     band: int | None = None) -> str:
+    """What the output depends on: the input's ingest hash, the basis keys, the settings."""
+    names = ("als",) if settings.basis == "als" else (settings.basis, "u_y", "v_y")
+    keys = {}
+    for n in names:
+        try:
+            keys[n] = model[f"classes/{settings.cls}/{n}"].attrs.get("key")
+        except KeyError:
+            keys[n] = None
+    payload = {"input": data.attrs.get("ingest_hash") or data.attrs.get("reconstruct_hash"), "bases": keys,
+               "rows_id": model.attrs.get("rows_id"), "settings": asdict(settings), "schema": "btf-texture/1.0",
+               "band": band}
+    return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def _create_output(path: Path, data: zarr.Group, key: str, attrs: dict[str, Any], n_bands: int, band: int
+                   ) -> zarr.Group:
+    h, w = data.attrs["texture_shape"]
+    n_turn, n_cam, n_leds = data.attrs["turntable_cameras_leds"]
+    n_lv = n_turn * n_cam * n_leds
+    group = zarr.open_group(str(path), mode="w", zarr_format=3)
+    group.create_array("btf", shape=(n_lv, h, w, 3), chunks=(n_leds, band, w, 3), dtype="float32", fill_value=0.0,
+                       compressors=None, dimension_names=["lv", "tex_row", "tex_col", "channel"])
+    for name in ("light_dir", "view_dir", "lv_index"):
+        v = data[name][...]
+        group.create_array(name, shape=v.shape, dtype=v.dtype, chunks=v.shape, compressors=None)[...] = v
+    group.create_array("written", shape=(n_bands,), chunks=(1,), dtype="uint8", fill_value=0, compressors=None)
+    group.attrs.put(to_json_attr({**attrs, "reconstruct_hash": key, "ingest_hash": key, "complete": False}))
+    return group
+
+
+def reconstruct_store(in_path: str | os.PathLike, model_path: str | os.PathLike, out_path: str | os.PathLike,
+                      settings: ReconstructSettings, client: Any, *, overwrite: bool = False,
+                      band_rows: int | None = None,
+                      progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
+    """Reconstruct a full BTF store from a measurement (or a BTF) and a class basis, on a Dask cluster.
+
+    Parameters
+    ----------
+    in_path : str or path-like
+        A finished measurement store or BTF store.
+    model_path : str or path-like
+        ``btf build-db`` output folder (or its ``model.zarr``).
+    out_path : str or path-like
+        The BTF store to write (.zarr). It is built at ``X.partial.zarr`` and
+        renamed into place once every band is written; a rerun resumes the
+        partial store of the same inputs and settings.
+    settings : ReconstructSettings
+    client : distributed.Client
+    overwrite : bool
+        Replace another store at ``out_path`` (only once the new one is complete).
+    band_rows : int, optional
+        Texture rows per band (a Dask task and a chunk of the output); default
+        one BTF-store chunk, :func:`tasks.ingest.band_rows`.
+
+    Returns
+    -------
+    summary : dict
+        Bands processed/skipped, the operator's condition number, seconds.
+
+    Raises
+    ------
+    ValueError
+        Bad input, before anything is written: not a measurement/BTF store, no
+        such class or basis, another light/view sampling than the model's,
+        fewer measured rows than basis vectors with ``pinv`` (suggesting
+        ``tikhonov``), a multiplexed measurement with a log basis.
+    FileExistsError
+        Another store at ``out_path`` without ``overwrite``.
+    """
+    import dask
+    from distributed import as_completed
+
+    start = time.perf_counter()
+    data, kind = read_input(in_path)
+    model = open_model(model_path)
+    _check_sampling(model, data, in_path)
+    out = Path(out_path)
+    key = reconstruct_hash(data, model, settings, band_rows)
+    finish_interrupted_commit(out)
+    existing = store_attrs(out)
+    if existing is not None and not overwrite:
+        if existing.get("reconstruct_hash") == key and existing.get("complete"):
+            return {"bands_processed": 0, "bands_skipped": None, "out": str(out), "seconds": 0.0, "reused": True}
+        raise FileExistsError(f"{out} holds {'another store' if existing else 'something that is not a Zarr store'} "
+                              f"(reconstruct_hash {existing.get('reconstruct_hash') if existing else None!r}, this run "
+                              f"{key!r}); choose another --out or pass --overwrite (the new store is built in "
+                              f"{staging_path(out)} and replaces it only once complete)")
+    G = _measurement_G(data, kind)
+    h, w = data.attrs["texture_shape"]
+    n_turn, n_cam, n_leds = data.attrs["turntable_cameras_leds"]
+    n_lv = n_turn * n_cam * n_leds
+    bands = _bands(h, n_leds, w) if band_rows is None else [(r, min(r + band_rows, h)) for r in range(0, h, band_rows)]
+    band = bands[0][1]
+    variance = _variance(str(in_path), G, bands, client) if settings.method == "thresholded" else None
+    ops = build_operators(settings, model, G, n_lv, variance, model_path)     # bad input raises here
+    condition = float(ops["rgb" if "rgb" in ops else "y"].condition)
+    staging = staging_path(out)
+    attrs_stage = store_attrs(staging)
+    if attrs_stage is not None and attrs_stage.get("reconstruct_hash") == key:
+        group = zarr.open_group(str(staging), mode="r+", zarr_format=3)   # a killed run: resume its bands
+    else:
+        if attrs_stage is not None:
+            shutil.rmtree(staging)
+        attrs = {"schema": "btf-texture", "schema_version": "1.0", "units": data.attrs.get("units"),
+                 "lv_order": ["turntable", "camera", "light"], "texture_shape": [h, w],
+                 "turntable_cameras_leds": [n_turn, n_cam, n_leds], "material": data.attrs.get("material"),
+                 "source": str(in_path), "settings": data.attrs.get("settings"),
+                 "reconstructed_from": {"input": str(in_path), "input_kind": kind, "model": str(model_path),
+                                        "rows_id": model.attrs.get("rows_id"), **asdict(settings),
+                                        "n_meas": int(G.shape[0]) if G is not None else n_lv,
+                                        "condition": condition if np.isfinite(condition) else None,
+                                        "plan": data.attrs.get("plan")}}
+        group = _create_output(staging, data, key, attrs, len(bands), band)
+    written = group["written"][...]
+    pending = np.flatnonzero(written == 0).tolist()
+    ops_d = dask.delayed(ops, pure=True)
+    tasks = [dask.delayed(reconstruct_band, pure=False)(str(in_path), str(staging), ops_d, b, bands) for b in pending]
+    futures = client.compute(tasks)                                  # one graph over every pending band
+    for done, future in enumerate(as_completed(futures), 1):
+        future.result()
+        if progress is not None:
+            progress(done, len(futures))
+    if not group["written"][...].all():
+        raise RuntimeError(f"{staging}: some bands were not written; re-run to resume")
+    group.attrs["complete"] = True
+    commit_staged(out, "reconstruct")
+    return {"out": str(out), "bands_processed": len(pending), "bands_skipped": int(written.size - len(pending)),
+            "n_meas": int(G.shape[0]) if G is not None else n_lv, "n_lv": n_lv,
+            "condition": condition if np.isfinite(condition) else None, "reused": False,
+            "seconds": round(time.perf_counter() - start, 3)}

@@ -1,0 +1,175 @@
+"""Plan layouts, measurement stores and chunked reconstruction (real Zarr, real LocalCluster)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import zarr
+
+from btfcore.colour import from_log_yuv
+from btfcore.hadamard import multiplexing_patterns
+from btfcore.measurement_operator import demultiplexing_matrix, measurement_solve_operator
+from btfcore.plan import ExposureModel, sparse_multiplexed_plan
+from btfcore.reconstruct import apply, measurement_matrix, solve_operator
+from btfcore.simulate.devices import get_device
+from tasks.measurement import plan_layout, write_measurement
+from tasks.reconstruct import ReconstructSettings, check_inputs, open_model, reconstruct_chunk, reconstruct_store
+
+N_TURN, N_CAM, N_LEDS, H, W = 2, 2, 8, 8, 8
+N_LV = N_TURN * N_CAM * N_LEDS
+
+
+def _directions(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=(2, N_LV, 3))
+    d[..., 2] = np.abs(d[..., 2]) + 0.5
+    return tuple(d / np.linalg.norm(d, axis=-1, keepdims=True))
+
+
+def _model(path, bases: dict[str, tuple[np.ndarray, np.ndarray]], cls: str = "leather", seed: int = 0) -> str:
+    """A model store (btf-model layout of tasks.model) holding the given class bases."""
+    group = zarr.open_group(str(path), mode="w", zarr_format=3)
+    light, view = _directions(seed)
+    for name, data in (("light_dir", light), ("view_dir", view)):
+        group.create_array(name, shape=data.shape, dtype="float64", chunks=data.shape)[...] = data
+    group.attrs.put({"schema": "btf-model", "schema_version": "1.0", "rows_id": f"test-{seed}", "n_lv": N_LV})
+    for name, (U, sigma) in bases.items():
+        sub = group.require_group(f"classes/{cls}/{name}")
+        for arr_name, data in (("U", U), ("sigma", sigma)):
+            sub.create_array(arr_name, shape=data.shape, dtype="float64", chunks=data.shape)[...] = data
+        sub.attrs.put({"method": "test", "key": f"{name}-key"})
+    return str(path)
+
+
+def _orthonormal(rng, n: int, k: int) -> tuple[np.ndarray, np.ndarray]:
+    U = np.linalg.qr(rng.normal(size=(n, k)))[0]
+    return U, np.linspace(10.0, 1.0, k)
+
+
+def _measurement(path, B: np.ndarray, G: np.ndarray) -> str:
+    light, view = _directions()
+    measured = (G @ B.reshape(N_LV, -1)).reshape(len(G), *B.shape[1:])
+    write_measurement(path, measured, G, light, view, (N_TURN, N_CAM, N_LEDS))
+    return str(path)
+
+
+def _sparse_G(rows) -> np.ndarray:
+    return measurement_matrix(N_LV, rows=np.asarray(rows))
+
+
+def test_plan_layout_matches_the_plan():
+    device = get_device("tiny")
+    sel = np.array([[0, 0], [0, 3], [1, 5], [2, 18]])
+    plan = sparse_multiplexed_plan(device, sel, ExposureModel(single_ms=(1.0, 10.0, 100.0)))
+    illum, shot, times = plan_layout(plan)
+    pat = multiplexing_patterns(device.n_leds)
+    assert illum.shape == (4, device.n_leds)
+    for k, s in enumerate(plan.shots):
+        i = next(j for j in range(len(illum)) if tuple(np.flatnonzero(illum[j])) == s.leds)
+        assert (shot[s.turntable, list(s.cameras), i] == k).all()
+        np.testing.assert_allclose(times[s.turntable, 0, i, :s.n_exposures], np.asarray(s.shutter_ms) / 1000)
+        assert tuple(np.flatnonzero(pat[sel[k, 1]])) == s.leds
+    assert (shot >= 0).sum() == len(plan.shots) * device.n_cam
+
+
+def test_general_G_operator_equals_solve_operator():
+    rng = np.random.default_rng(1)
+    U, sigma = _orthonormal(rng, N_LV, 6)
+    pat = multiplexing_patterns(N_LEDS)
+    rows = np.sort(rng.choice(N_TURN * N_CAM * pat.shape[0], 20, replace=False))
+    G = measurement_matrix(N_LV, rows=rows, patterns=pat)
+    y = rng.normal(size=(len(rows), 50))
+    for lam in (0.0, 0.5):
+        a = measurement_solve_operator(U, G, sigma, method="direct", lam=lam, dtype=np.float64)
+        b = solve_operator(U, sigma, method="direct", rows=rows, patterns=pat, lam=lam, dtype=np.float64)
+        np.testing.assert_allclose(apply(a, y), apply(b, y), rtol=1e-10, atol=1e-10)
+    G_full = measurement_matrix(N_LV, patterns=pat)
+    P = demultiplexing_matrix(G_full).toarray()
+    np.testing.assert_allclose(P @ G_full, np.eye(N_LV), atol=1e-10)
+    with pytest.raises(ValueError, match="method='direct'"):
+        measurement_solve_operator(U, G, method="pinv")
+    with pytest.raises(ValueError, match="cannot be demultiplexed"):
+        measurement_solve_operator(U, G, method="projection")
+
+
+@pytest.mark.parametrize("basis", ["als", "log_y"])
+def test_exact_in_span_reconstruction_chunked_equals_in_memory(tmp_path, dask_client, basis):
+    rng = np.random.default_rng(2)
+    k = 5
+    if basis == "als":
+        U, sigma = _orthonormal(rng, N_LV, k)
+        bases = {"als": (U, sigma)}
+        B = (U @ rng.normal(size=(k, H * W * 3))).reshape(N_LV, H, W, 3)
+    else:
+        bases = {name: _orthonormal(rng, N_LV, k) for name in ("log_y", "u_y", "v_y")}
+        x = np.stack([(bases[n][0] @ rng.normal(scale=s, size=(k, H * W))).reshape(N_LV, H, W)
+                      for n, s in (("log_y", 1.0), ("u_y", 0.1), ("v_y", 0.1))], axis=-1)
+        B = from_log_yuv(x)                                   # log Y, U/Y, V/Y exactly in the bases' span
+    model = _model(tmp_path / "model.zarr", bases)
+    rows = np.sort(rng.choice(N_LV, 12, replace=False))      # sparse single-light, 12 rows >= k
+    meas = _measurement(tmp_path / "m.zarr", B, _sparse_G(rows))
+    settings = ReconstructSettings(cls="leather", basis=basis, method="pinv")
+    summary = reconstruct_store(meas, tmp_path, tmp_path / "out.zarr", settings, dask_client, band_rows=3)
+    assert summary["bands_processed"] == 3
+    out = zarr.open_group(str(tmp_path / "out.zarr"), mode="r")
+    assert out.attrs["schema"] == "btf-texture" and out.attrs["complete"]
+    assert not (tmp_path / "out.partial.zarr").exists()
+    got = out["btf"][...]
+    np.testing.assert_allclose(got, B, rtol=2e-3, atol=2e-4 * np.abs(B).max())
+    # chunked (3 bands on the cluster) equals the in-memory reconstruction of the whole texture
+    from tasks.reconstruct import build_operators
+    ops = build_operators(settings, open_model(model), _sparse_G(rows), N_LV)
+    whole = reconstruct_chunk(ops, zarr.open_group(meas, mode="r")["measured"][...])
+    np.testing.assert_allclose(got, whole, rtol=1e-5, atol=1e-6 * np.abs(whole).max())
+    # a finished output is reused, not recomputed
+    again = reconstruct_store(meas, tmp_path, tmp_path / "out.zarr", settings, dask_client, band_rows=3)
+    assert again["reused"]
+
+
+def test_abtf_bands_equal_whole_texture_and_multiplexed_direct(tmp_path, dask_client):
+    rng = np.random.default_rng(3)
+    k = 6
+    bases = {"abtf_log_y": _orthonormal(rng, 9 * N_LV, k), "u_y": _orthonormal(rng, N_LV, 4),
+             "v_y": _orthonormal(rng, N_LV, 4), "als": _orthonormal(rng, N_LV, k)}
+    _model(tmp_path / "model.zarr", bases)
+    B = np.exp(rng.normal(scale=0.3, size=(N_LV, H, W, 3))).astype(np.float32)
+    rows = np.sort(rng.choice(N_LV, 10, replace=False))
+    meas = _measurement(tmp_path / "sparse.zarr", B, _sparse_G(rows))
+    settings = ReconstructSettings(cls="leather", basis="abtf_log_y", method="pinv")
+    reconstruct_store(meas, tmp_path / "model.zarr", tmp_path / "abtf.zarr", settings, dask_client, band_rows=2)
+    from tasks.reconstruct import build_operators
+    ops = build_operators(settings, open_model(tmp_path / "model.zarr"), _sparse_G(rows), N_LV)
+    whole = reconstruct_chunk(ops, zarr.open_group(meas, mode="r")["measured"][...])
+    got = zarr.open_group(str(tmp_path / "abtf.zarr"), mode="r")["btf"][...]
+    np.testing.assert_allclose(got, whole, rtol=1e-4, atol=1e-6 * np.abs(whole).max())
+    # multiplexed rows: exact in the ALS span with 'direct'
+    U = bases["als"][0]
+    B_lin = (U @ rng.normal(size=(k, H * W * 3))).reshape(N_LV, H, W, 3)
+    pat = multiplexing_patterns(N_LEDS)
+    G = measurement_matrix(N_LV, rows=np.arange(0, N_TURN * N_CAM * pat.shape[0], 3), patterns=pat)
+    mux = _measurement(tmp_path / "mux.zarr", B_lin, G)
+    reconstruct_store(mux, tmp_path / "model.zarr", tmp_path / "direct.zarr",
+                      ReconstructSettings(cls="leather", basis="als", method="direct"), dask_client)
+    got = zarr.open_group(str(tmp_path / "direct.zarr"), mode="r")["btf"][...]
+    np.testing.assert_allclose(got, B_lin, atol=2e-4 * np.abs(B_lin).max())
+    with pytest.raises(ValueError, match="multiplexed rows"):
+        check_inputs(mux, tmp_path / "model.zarr", ReconstructSettings(cls="leather", basis="log_y"))
+
+
+def test_bad_input_is_named_before_anything_is_written(tmp_path):
+    rng = np.random.default_rng(4)
+    U, sigma = _orthonormal(rng, N_LV, 10)
+    _model(tmp_path / "model.zarr", {"als": (U, sigma)})
+    _model(tmp_path / "other.zarr", {"als": (U, sigma)}, seed=9)        # another light/view sampling
+    B = rng.normal(size=(N_LV, H, W, 3))
+    meas = _measurement(tmp_path / "m.zarr", B, _sparse_G(np.arange(6)))
+    with pytest.raises(ValueError, match="light/view pair 0 differs"):
+        check_inputs(meas, tmp_path / "other.zarr", ReconstructSettings(cls="leather"))
+    with pytest.raises(ValueError, match=r"6 measured rows for k=10.*tikhonov"):
+        check_inputs(meas, tmp_path / "model.zarr", ReconstructSettings(cls="leather", method="pinv"))
+    check_inputs(meas, tmp_path / "model.zarr", ReconstructSettings(cls="leather", method="tikhonov", lam=0.01))
+    with pytest.raises(ValueError, match="no basis classes/wood/als.*leather"):
+        check_inputs(meas, tmp_path / "model.zarr", ReconstructSettings(cls="wood"))
+    with pytest.raises(ValueError, match="log space"):
+        ReconstructSettings(cls="leather", basis="log_y", method="direct")
+    assert not (tmp_path / "out.zarr").exists()
