@@ -235,6 +235,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--k", type=int, default=None, metavar="K", help="use only the first K basis vectors")
     p.add_argument("--out", required=True, metavar="BTF", help="BTF store to write (.zarr)")
     p.add_argument("--overwrite", action="store_true", help="replace another store at --out once the new one is complete")
+    from flows.acquisition_cli import add_acquisition_commands
+    add_acquisition_commands(sub)  # btf sample, btf plan, btf render
     return parser
 
 
@@ -340,6 +342,10 @@ def _validate(args: argparse.Namespace) -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    from flows.acquisition_cli import run_acquisition_command
+    code = run_acquisition_command(args)  # sample, plan, render: in-process, no cluster
+    if code is not None:
+        return code
     if args.command == "validate":
         return _validate(args)
     if args.command == "export-exr":

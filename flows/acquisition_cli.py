@@ -1,0 +1,268 @@
+"""``btf sample``, ``btf plan`` and ``btf render``: sparse sampling, capture plans, renderings.
+
+Wiring only: argument parsing, calls into :mod:`tasks.sample`,
+:mod:`tasks.plan` and :mod:`tasks.render`, JSON summaries on stdout and
+progress on stderr. These commands work on small in-memory arrays (a basis,
+a plan, one rendering), so they run in the calling process and start neither
+a Dask cluster nor Prefect. Exit codes as :mod:`flows.cli`: 0 success, 1 bad
+input (the message names the file, array and index and what to do), 2 usage.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+EXIT_BAD_INPUT = 1
+
+PLAN_STRATEGIES: tuple[str, ...] = ("full", "sparse", "multiplexed", "sparse-multiplexed", "bootstrap")
+
+SAMPLE_HELP = """\
+Choose which light/view pairs a sparse measurement takes, for a class basis of
+a model store (`btf build-db`), by minimising the condition number kappa(M U)
+(paper 1, Alg. 1; docs/sampling.md). Methods: greedy (default; not in the
+thesis, batched then exactly predicted swaps, much faster than the random
+swap), random_swap (Matusik et al., as the thesis), parabolic_map (the 7x7
+heuristic of paper 1, Fig. 3b; --n not needed). With --camera-parallel whole
+(turntable, LED) pairs are chosen and all cameras always used (paper 4, §5.2):
+--n then counts pairs. The groups come from --device's row order (an
+unresampled model of that dome), otherwise from the rows' light directions.
+With --device the output also lists the (turntable, LED) pairs that
+`btf plan --strategy sparse --samples` captures. Writes JSON: rows, kappa, its
+history, method, settings, seconds.
+"""
+
+PLAN_HELP = """\
+Write an acquisition plan for a dome (PLAN_DIR/plan.json, complete, and
+PLAN_DIR/plan.csv, one row per shot: turntable angle, LEDs on, cameras, shutter
+times, exposure steps) and print the predicted acquisition time with its
+breakdown (btfcore.time_model; docs/acquisition-planning.md). Strategies: full
+(every LED alone at every turntable position), sparse (the (turntable, LED)
+pairs of --samples, all cameras), multiplexed (S-matrix patterns), sparse-
+multiplexed (at each turntable position the sampled LEDs multiplexed with
+their own S-matrix), bootstrap (VMV §4.2: the quadrant opposite the cameras
+single-light, the others with smaller S-matrices). --material picks the
+shutter times of VMV Table 2 (cloth, leather, wood).
+"""
+
+RENDER_HELP = """\
+Render a BTF store (`btf ingest` or `btf resample`) on a sphere, cylinder or
+plane and write a tone-mapped PNG (docs/rendering.md): angular interpolation
+between the measured light/view directions, bilinear texels, under a point
+light (--light, default upper right front) and/or an environment map (--env:
+an EXR file, or forest, sky or studio from the shared data). Prints JSON with
+the image size, seconds and the PNG path.
+"""
+
+
+def _positive_int(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {v}")
+    return v
+
+
+def add_acquisition_commands(sub: Any) -> None:
+    """Add ``sample``, ``plan`` and ``render`` to the subcommand parsers of :func:`flows.cli.build_parser`."""
+    from btfcore.simulate.devices import DEVICE_NAMES
+    from btfcore.time_model import VMV_TABLE2
+
+    p = sub.add_parser("sample", help="sparse sampling: which light/view pairs to measure (kappa-optimised)",
+                       description=SAMPLE_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--model", required=True, metavar="MODEL_DIR", help="output folder of `btf build-db` (or its model.zarr)")
+    p.add_argument("--class", dest="cls", required=True, metavar="CLS", help="material class of the basis (classes/CLS)")
+    p.add_argument("--basis", default="log_y", choices=("log_y", "abtf_log_y", "als"),
+                   help="log_y (ABRDF, paper 1), abtf_log_y (3x3 patches: kappa of (I_9 kron M) U), als (paper 4) "
+                        "[default: log_y]")
+    p.add_argument("--n", type=_positive_int, default=None, metavar="N",
+                   help="rows to select (with --camera-parallel: (turntable, LED) pairs); the thesis used 6%% of the "
+                        "rows (1369 of 22,801)")
+    p.add_argument("--method", default="greedy", choices=("greedy", "random_swap", "parabolic_map"),
+                   help="sampler [default: greedy]")
+    p.add_argument("--camera-parallel", action="store_true",
+                   help="choose (turntable, LED) pairs and use all cameras for each (paper 4, §5.2)")
+    p.add_argument("--device", default=None, choices=DEVICE_NAMES,
+                   help="dome whose (turntable, camera, LED) row order the model has; adds the (turntable, LED) "
+                        "pairs for `btf plan`")
+    p.add_argument("--seed", type=int, default=0, help="seed of the random start [default: 0]")
+    p.add_argument("--max-steps", type=_positive_int, default=None, metavar="S",
+                   help="most steps (random swap: trial swaps, default 10,000; greedy: per phase, default 2,000)")
+    p.add_argument("--out", required=True, metavar="SAMPLES_JSON", help="where to write the samples")
+
+    p = sub.add_parser("plan", help="acquisition plan (JSON + CSV) and its predicted acquisition time",
+                       description=PLAN_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--device", default="bonn-dome2", choices=DEVICE_NAMES,
+                   help="dome preset [default: bonn-dome2, the thesis' DOME II]")
+    p.add_argument("--strategy", required=True, choices=PLAN_STRATEGIES, help="what to capture")
+    p.add_argument("--samples", default=None, metavar="SAMPLES_JSON",
+                   help="`btf sample --device DEVICE` output; needed by sparse and sparse-multiplexed")
+    p.add_argument("--material", default=None, choices=tuple(VMV_TABLE2),
+                   help="shutter times of VMV Table 2 for this material [default: the ExposureModel default]")
+    p.add_argument("--out", required=True, metavar="PLAN_DIR", help="output folder (plan.json, plan.csv)")
+
+    p = sub.add_parser("render", help="render a BTF store on a sphere, cylinder or plane to a PNG",
+                       description=RENDER_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("btf", metavar="BTF_STORE", help="finished BTF store (.zarr)")
+    p.add_argument("--shape", default="sphere", choices=("sphere", "cylinder", "plane"), help="[default: sphere]")
+    p.add_argument("--env", default=None, metavar="EXR",
+                   help="environment map: a lat-long EXR file, or forest, sky or studio (../shared/data/env)")
+    p.add_argument("--light", default=None, metavar="X,Y,Z",
+                   help="point light position in world units (object of radius 1 at the origin, camera on +z); "
+                        "default (2, 2, 4) when no --env is given")
+    p.add_argument("--intensity", type=float, default=None, metavar="I",
+                   help="radiant intensity of the point light [default: 24, irradiance 1 at the origin]")
+    p.add_argument("--size", type=_positive_int, default=256, metavar="PX", help="image side [default: 256]")
+    p.add_argument("--out", required=True, metavar="PNG", help="image to write")
+
+
+def run_acquisition_command(args: argparse.Namespace) -> int | None:
+    """Run ``args.command`` if it is one of this module's; None otherwise. Returns the exit code."""
+    commands = {"sample": _sample, "plan": _plan, "render": _render}
+    if args.command not in commands:
+        return None
+    try:
+        summary = commands[args.command](args)
+    except (ValueError, FileNotFoundError, KeyError) as exc:
+        message = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
+        print(f"btf {args.command}: {message}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    print(json.dumps(summary, indent=2))
+    return 0
+
+
+# --------------------------------------------------------------------------- sample
+
+
+def _sample(args: argparse.Namespace) -> dict[str, Any]:
+    from btfcore.simulate.devices import get_device
+    from tasks.sample import sample_model, write_samples
+
+    show = not getattr(args, "no_progress", False)
+    last = [0.0]
+
+    def progress(phase: str, step: int, kappa: float) -> None:
+        now = time.perf_counter()
+        if show and (now - last[0] > 0.5 or step == 0):
+            last[0] = now
+            print(f"btf sample: {phase} step {step}: kappa {kappa:.5g}", file=sys.stderr, flush=True)
+
+    device = get_device(args.device) if args.device else None
+    doc = sample_model(args.model, args.cls, args.basis, args.n, method=args.method,
+                       camera_parallel=args.camera_parallel, device=device, seed=args.seed,
+                       max_steps=args.max_steps, progress=progress)
+    out = write_samples(doc, args.out)
+    return {"command": "sample", "out": str(out.resolve()), "method": doc["method"], "class": doc["class"],
+            "basis": doc["basis"], "k": doc["k"], "n_s": doc["n_s"], "n_rows": doc["n_rows"],
+            "kappa": doc["kappa"], "kappa_start": doc["kappa_history"]["start"], "steps": doc["steps"],
+            "pairs": len(doc["pairs"]) if "pairs" in doc else None, "seconds": doc["seconds"]}
+
+
+# --------------------------------------------------------------------------- plan
+
+
+def _selection(args: argparse.Namespace, device) -> Any:
+    import numpy as np
+
+    from tasks.sample import read_samples
+
+    if not args.samples:
+        raise ValueError(f"--strategy {args.strategy} needs --samples SAMPLES_JSON (from `btf sample --device "
+                         f"{device.name} ...`)")
+    doc = read_samples(args.samples)
+    if doc.get("device") not in (None, device.name):
+        raise ValueError(f"{args.samples}: sampled for device {doc['device']!r}, not {device.name!r}; sample again "
+                         f"with --device {device.name} or plan for --device {doc['device']}")
+    if not doc.get("pairs"):
+        raise ValueError(f"{args.samples}: holds no (turntable, LED) pairs (it was written without --device); "
+                         f"run `btf sample ... --device {device.name}` on a model of that dome")
+    return np.asarray(doc["pairs"], dtype=np.int64)
+
+
+def _plan(args: argparse.Namespace) -> dict[str, Any]:
+    from btfcore import plan as P
+    from btfcore.simulate.devices import get_device
+    from btfcore.time_model import TimeModelParams, predict_time, thesis_exposure
+    from tasks.plan import write_plan
+
+    device = get_device(args.device)
+    exposure = thesis_exposure(args.material) if args.material else None
+    if args.samples and args.strategy not in ("sparse", "sparse-multiplexed"):
+        raise ValueError(f"--samples applies to the sparse strategies, not {args.strategy!r}; drop it")
+    if args.strategy == "full":
+        plan = P.full_single_light_plan(device, exposure)
+    elif args.strategy == "sparse":
+        plan = P.sparse_plan(device, _selection(args, device), exposure)
+    elif args.strategy == "multiplexed":
+        plan = P.multiplexed_plan(device, exposure)
+    elif args.strategy == "sparse-multiplexed":
+        plan = P.sparse_multiplexed_plan(device, _selection(args, device), exposure, select="leds")
+    else:
+        plan = P.bootstrapping_plan(device, exposure)
+    out = Path(args.out)
+    params = TimeModelParams()
+    write_plan(plan, out / "plan.json", out / "plan.csv", device=device, time_params=params)
+    t = predict_time(plan, params)
+    breakdown = {name: round(float(v), 1) for name, v in t.to_dict().items()
+                 if name.endswith("_s") and name != "total_s"}
+    print(f"btf plan: {args.strategy} on {device.name}: {t.n_shots} shots, {t.n_exposures} exposures, "
+          f"predicted {t.total_h:.2f} h ({t.total_s / 60:.1f} min)", file=sys.stderr)
+    for name, v in breakdown.items():
+        print(f"  {name:22s} {v:12.1f} s", file=sys.stderr)
+    return {"command": "plan", "device": device.name, "strategy": plan.strategy,
+            "material": args.material, "out": str(out.resolve()),
+            "plan_json": str((out / "plan.json").resolve()), "plan_csv": str((out / "plan.csv").resolve()),
+            "shots": t.n_shots, "exposures": t.n_exposures, "images": plan.n_images,
+            "predicted_s": round(t.total_s, 1), "predicted_h": round(t.total_h, 3), "breakdown_s": breakdown,
+            "time_model": params.to_dict()}
+
+
+# --------------------------------------------------------------------------- render
+
+
+def _env_path(text: str) -> Path:
+    from tasks.shared_data import shared_file
+
+    path = Path(text)
+    if path.exists():
+        return path
+    if "/" not in text and "." not in text:
+        found = shared_file(f"env/{text}.exr")
+        if found is not None:
+            return found
+    raise ValueError(f"--env {text}: no such file (and not forest, sky or studio of ../shared/data/env); "
+                     "give a lat-long EXR file")
+
+
+def _render(args: argparse.Namespace) -> dict[str, Any]:
+    from btfcore.btf_render import PointLight
+    from tasks.render import render_store
+
+    light = None
+    if args.light is not None or args.intensity is not None:
+        position = (2.0, 2.0, 4.0)
+        if args.light is not None:
+            try:
+                position = tuple(float(v) for v in args.light.split(","))
+            except ValueError:
+                position = ()
+            if len(position) != 3 or not all(abs(v) < float("inf") for v in position):
+                raise ValueError(f"--light {args.light!r}: give the point light position as three numbers X,Y,Z")
+        intensity = 24.0 if args.intensity is None else float(args.intensity)
+        if not intensity > 0:
+            raise ValueError(f"--intensity {args.intensity}: must be > 0")
+        light = PointLight(position=position, intensity=(intensity,) * 3)
+    env = _env_path(args.env) if args.env else None
+    if not Path(args.btf).exists():
+        raise ValueError(f"{args.btf}: no such BTF store; give the output of `btf ingest` or `btf resample`")
+    r = render_store(args.btf, args.shape, light=light, env=env, out_png=args.out, image_size=args.size)
+    return {"command": "render", "btf": str(Path(args.btf).resolve()), "shape": args.shape,
+            "env": str(env) if env else None, "light": list(light.position) if light else None,
+            "size": list(r.srgb.shape[:2]), "object_pixels": int(r.mask.sum()), "seconds": round(r.seconds, 3),
+            "png": str(Path(r.png).resolve()) if r.png else None}
