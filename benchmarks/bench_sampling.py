@@ -102,7 +102,7 @@ def run_scale(dirs: int, k: int, n_tx: int, n_s: int | None, swap_steps: int, se
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="small smoke run (37^2 pairs, k=32, 3000 swaps)")
+    parser.add_argument("--quick", action="store_true", help="small smoke run (37^2 pairs, k=32, 30,000 swaps)")
     parser.add_argument("--scales", default="47:64,66:128,151:128,151:200", metavar="D:K,...",
                         help="UBO2014 directions d (d^2 pairs) and basis size k per scale "
                              "[default: 47:64,66:128,151:128,151:200]")
@@ -112,7 +112,7 @@ def main() -> int:
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
     if args.quick:
-        args.scales, args.n_tx, args.swap_steps = "37:32", 256, 3000
+        args.scales, args.n_tx, args.swap_steps = "37:32", 256, 30000
     scales = [tuple(int(v) for v in item.split(":")) for item in args.scales.split(",")]
     load_start = round(os.getloadavg()[0], 2)
     runs = [run_scale(d, k, args.n_tx, args.n_s, args.swap_steps, args.seed) for d, k in scales]

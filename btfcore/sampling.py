@@ -9,9 +9,9 @@ al.'s random swap (paper 1, Alg. 1; paper 4, §4.3) minimises
 represents ``M`` by the indices of the rows it selects and offers
 
 * :func:`random_swap`: the thesis' algorithm,
-* :func:`greedy`: a faster sampler (not in the thesis): swaps chosen by the
-  first-order change of a smooth condition number, several at a time, then
-  swaps that accept only decreases of :math:`\\kappa`,
+* :func:`greedy`: a faster sampler (not in the thesis): batched swaps on a
+  smooth condition number, then single swaps chosen by exactly predicted
+  extreme eigenvalues (Rayleigh-Ritz, :math:`O(k)` per candidate swap),
 * :func:`parabolic_map_sampling`: the 7 x 7 parabolic-map heuristic of
   paper 1, Fig. 3b,
 * :func:`multiplexed_basis` / :func:`multiplexed_condition`: the condition
@@ -701,13 +701,16 @@ def _exchange(units: _Units, sel: np.ndarray, max_steps: int, width: int, n_ext:
               pairs: int = 16, scan: int = 2048,
               progress: Callable[[str, int, float], None] | None = None, phase: str = "",
               rounds: int = 4) -> tuple[np.ndarray, list[float], bool]:
-    """Single swaps chosen by predicted objective among ``width x width`` candidate pairs.
+    """Single swaps chosen by exactly predicted extreme eigenvalues (phases 3 and 4 of :func:`greedy`).
 
-    Candidates: the ``width`` unselected units whose addition and the ``width`` selected units
-    whose removal lower the smooth objective most to first order. Every pair's new extreme
-    eigenvalues are predicted by :func:`_end_ritz`; the best predicted pairs (up to ``tries``)
-    are evaluated exactly and the first that lowers the objective is kept. Stops when none
-    does (``converged``) or after ``max_steps``.
+    Candidates: ``width`` units to add and ``width`` to remove (:func:`_candidates`: half the
+    best by the first-order change of the smooth objective over ``scan`` drawn unselected units
+    and all selected ones, half at random). Each addition and each removal alone, then the
+    ``pairs`` best pairs by the sum of the two changes, are predicted by :func:`_end_ritz`; the
+    best predicted pairs (up to ``tries``) are evaluated exactly and the first that lowers the
+    objective (``soft``: the smooth f, else kappa) is kept. A round without one is retried with
+    a fresh draw and twice the pairs; after ``rounds`` such rounds the phase stops
+    (``converged``), or after ``max_steps`` accepted swaps.
     """
     A, idx = units.A, units.idx
     k, r = units.k, idx.shape[1]
