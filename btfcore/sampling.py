@@ -754,6 +754,10 @@ def _exchange(units: _Units, sel: np.ndarray, max_steps: int, width: int, n_ext:
         plus, minus = np.ones(r), -np.ones(r)
 
         def predict(Xs: np.ndarray, sign: np.ndarray) -> np.ndarray:
+            n = Xs.shape[-2]
+            if (m + n) ** 3 + n * n * k > k ** 3:              # large groups: the eigenproblem is cheaper
+                full = np.linalg.eigvalsh(np.diag(w) + (np.swapaxes(Xs, -1, -2) * sign) @ Xs)
+                return _predicted(w, full[..., :m], full[..., -m:], q, soft)
             return _predicted(w, _end_ritz(w, Xs, sign, m, False), _end_ritz(w, Xs, sign, m, True), q, soft)
 
         f_in = predict(Pi, plus)                               # each addition alone
