@@ -202,9 +202,23 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("evaluate", help="measure a result against the simulator's ground truth",
                        description="Compare a result with the ground truth of a simulated capture and print the "
                                    "metrics as JSON; they are also written to --report.")
-    p.add_argument("what", choices=("ingest",), help="ingest: a BTF store from `btf ingest` against its capture's truth")
-    p.add_argument("--truth", required=True, metavar="SIM", help="simulated capture store (with truth/)")
-    p.add_argument("--btf", required=True, metavar="BTF", help="BTF store from `btf ingest`")
+    p.add_argument("what", choices=("ingest", "acquisition"),
+                   help="ingest: a BTF store from `btf ingest` against its capture's truth; acquisition: leave-one-out "
+                        "evaluation of sparse, multiplexed and sparse+multiplexed acquisition on a simulated truth "
+                        "database (--db, --out; docs/evaluation.md)")
+    p.add_argument("--truth", default=None, metavar="SIM", help="ingest: simulated capture store (with truth/)")
+    p.add_argument("--btf", default=None, metavar="BTF", help="ingest: BTF store from `btf ingest`")
+    p.add_argument("--db", default=None, metavar="TRUTH_DB_DIR",
+                   help="acquisition: folder of truth BTF stores; missing ones are rendered into it")
+    p.add_argument("--out", default=None, metavar="DIR", help="acquisition: output folder (report.json, report.html)")
+    p.add_argument("--eval-device", default="bonn-dome2", metavar="NAME",
+                   help="acquisition: dome preset [default: bonn-dome2]")
+    p.add_argument("--eval-turntable", type=int, default=2, metavar="N",
+                   help="acquisition: first N turntable positions [default: 2, 4,356 light/view pairs]")
+    p.add_argument("--eval-texture", type=int, default=32, metavar="PX", help="acquisition: texture side [default: 32]")
+    p.add_argument("--eval-materials-per-class", type=int, default=2, metavar="N",
+                   help="acquisition: materials per class (>= 2 for leave-one-out) [default: 2]")
+    p.add_argument("--eval-seed", type=int, default=0, metavar="S", help="acquisition: root seed [default: 0]")
     p.add_argument("--report", default="report.json", metavar="PATH", help="where to write the metrics [default: report.json]")
 
     p = sub.add_parser("validate", help="check capture stores and list every problem",
@@ -285,11 +299,49 @@ def _export_exr(args: argparse.Namespace) -> int:
     return 0
 
 
+def _evaluate_acquisition(args: argparse.Namespace) -> int:
+    """``btf evaluate acquisition``: the flow of flows/evaluate_acquisition.py on the profile's cluster."""
+    from flows.runtime import RuntimeUnavailable, runtime
+
+    try:
+        if not args.db or not args.out:
+            raise ValueError("give --db TRUTH_DB_DIR and --out DIR")
+        from tasks.evaluate_acquisition import EvaluationConfig
+        config = EvaluationConfig(device=args.eval_device, n_turntable=args.eval_turntable,
+                                  texture_size=args.eval_texture, materials_per_class=args.eval_materials_per_class,
+                                  seed=args.eval_seed)
+    except ValueError as exc:
+        print(f"btf evaluate acquisition: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    start = time.perf_counter()
+    try:
+        with runtime(args.cluster) as (_profile, _url, client):
+            from flows.evaluate_acquisition import evaluate_acquisition_flow
+            summary = evaluate_acquisition_flow(args.db, args.out, client.scheduler.address, config,
+                                                progress=not args.no_progress)
+    except RuntimeUnavailable as exc:
+        print(f"btf evaluate acquisition: {exc}", file=sys.stderr)
+        return EXIT_RUNTIME
+    except (ValueError, FileExistsError, FileNotFoundError) as exc:
+        print(f"btf evaluate acquisition: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    print(json.dumps({"command": "evaluate acquisition", "scale": summary["scale"],
+                      "claims": {k: c["verdict"] for k, c in summary["claims"].items()},
+                      "report_json": summary["report_json"], "report_html": summary["report_html"],
+                      "seconds": round(time.perf_counter() - start, 2)}, indent=2))
+    return 0
+
+
 def _evaluate(args: argparse.Namespace) -> int:
     from tasks.ingest import btf_error_against_truth
     from tasks.report import write_json
     from tasks.store import CaptureStoreError, open_capture_store
 
+    if args.what == "acquisition":
+        return _evaluate_acquisition(args)
+    if not args.truth or not args.btf:
+        print("btf evaluate ingest: give --truth SIM and --btf BTF", file=sys.stderr)
+        return 2
     try:
         if not open_capture_store(args.truth).has_truth:
             raise ValueError(f"{args.truth} has no ground truth (truth/ group); give a simulated capture store")

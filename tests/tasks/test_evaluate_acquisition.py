@@ -1,0 +1,232 @@
+"""Acquisition evaluation (tasks.evaluate_acquisition, btfcore.noise): noise model, chunked = in-memory, bad input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import zarr
+
+from btfcore.metrics import mpsnr, mre, mrmse, relative_error
+from btfcore.noise import SensorNoise, expose, exposure_gain, noise_moments
+
+CONFIG_KW = dict(device="tiny", n_turntable=None, texture_size=12, materials_per_class=2,
+                 classes=("carpet", "stone"), sampling_steps=200, als_iterations=3, band_rows=4)
+
+
+# --------------------------------------------------------------------------- the noise model
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_noise_has_the_stated_mean_and_variance(dtype):
+    noise = SensorNoise(full_well_e=5500.0, read_noise_e=3.0, fill=0.8)
+    signal = np.array([0.5, 0.05, 0.002], dtype)[:, None] * np.ones((3, 40000), dtype)   # 3 images
+    gain = exposure_gain(np.array([0.5, 0.5, 0.5]), noise)                              # one exposure
+    assert np.allclose(gain * 0.5, 0.8 * 5500.0)                                         # max at fill * FW
+    x = expose(signal, gain, noise, np.random.default_rng(3), out_dtype=np.float64)
+    mean, var = noise_moments(signal, gain, noise)
+    n = signal.shape[1]
+    for i in range(3):
+        se = np.sqrt(var[i, 0] / n)
+        assert abs(x[i].mean() - mean[i, 0]) < 5 * se                                    # unbiased
+        assert abs(x[i].var() / var[i, 0] - 1) < 5 * np.sqrt(2 / n) + 0.01               # photon + read
+    # photon noise dominates bright images, read noise dark ones
+    assert var[0, 0] > 0.99 * signal[0, 0] / gain[0]
+    assert var[2, 0] > 3.0 ** 2 / gain[2] ** 2
+
+
+def test_exposure_refuses_a_black_image():
+    with pytest.raises(ValueError, match="image 1 has brightest value 0.0"):
+        exposure_gain(np.array([1.0, 0.0]), SensorNoise())
+
+
+def test_multiplexed_images_get_shorter_exposures():
+    from btfcore.hadamard import multiplexing_patterns
+    from tasks.evaluate_acquisition import Geometry, multiplex
+
+    rng = np.random.default_rng(0)
+    g = Geometry(1, 2, 7, 4, 4)
+    truth = rng.uniform(0.1, 1.0, (g.n_lv, 4, 4, 3)).astype(np.float32)
+    p = multiplexing_patterns(7)
+    mux = multiplex(truth, p, g)
+    noise = SensorNoise()
+    g_single = exposure_gain(truth.reshape(g.n_lv, -1).max(1), noise)
+    g_mux = exposure_gain(mux.reshape(len(mux), -1).max(1), noise)
+    assert g_mux.max() < g_single.min()          # brighter patterns, shorter exposures (fewer e- per unit)
+
+
+# --------------------------------------------------------------------------- a tiny evaluated database
+
+
+def _drop_test_folders_from_sys_path() -> None:
+    """Workers spawned under pytest inherit ``tests/`` and ``tests/tasks`` on ``sys.path``, where
+    ``tests/btfcore`` (no ``__init__.py``) shadows the ``btfcore`` package as a namespace package: its
+    ``__init__`` never runs and ``btfcore.empca``'s ``from . import BtfWarning`` fails. Drop those
+    folders (and such a namespace ``btfcore``) in every worker."""
+    import os
+    import sys
+
+    sys.path[:] = [p for p in sys.path if not (p.rstrip(os.sep).endswith(os.sep + "tests")
+                                               or (os.sep + "tests" + os.sep) in p + os.sep and "site-packages" not in p)]
+    if "btfcore" in sys.modules and getattr(sys.modules["btfcore"], "__file__", None) is None:
+        for name in [n for n in sys.modules if n == "btfcore" or n.startswith("btfcore.")]:
+            del sys.modules[name]
+
+
+@pytest.fixture(scope="module")
+def tiny_eval(tmp_path_factory, dask_client):
+    dask_client.run(_drop_test_folders_from_sys_path)
+    from tasks.evaluate_acquisition import EvaluationConfig, ensure_truth_database, fit_bases
+    from tasks.model import discover
+
+    out = tmp_path_factory.mktemp("eval-acq")
+    config = EvaluationConfig(**CONFIG_KW)
+    ensure_truth_database(config, out / "db", dask_client)
+    materials = discover(out / "db")
+    fit_bases(str(out / "model.zarr"), materials, config.model_settings(), dask_client)
+    return config, out, materials
+
+
+def _setup(config, out, materials, material_id):
+    from btfcore.hadamard import multiplexing_patterns
+    from btfcore.noise import SensorNoise
+    from tasks.evaluate_acquisition import (
+        _gains, _geometry, _operators, _reduce_max, _reduce_variance, band_maxima, band_variance, bands)
+
+    m = next(x for x in materials if x.material_id == material_id)
+    geometry = _geometry(m)
+    patterns = multiplexing_patterns(geometry.n_leds)
+    noise = SensorNoise(fill=config.fill)
+    seed = (0, 5)
+    parts = bands(geometry.height, 5)
+    gains = _gains(_reduce_max([band_maxima(m.path, a, b, patterns, geometry) for a, b in parts]), noise, m.path)
+    variance = _reduce_variance([band_variance(m.path, a, b, gains, patterns, geometry, noise, seed)
+                                 for a, b in parts])
+    strategies, _ = _operators(str(out / "model.zarr"), materials, material_id, config.model_settings(), geometry,
+                               config, variance, patterns)
+    return m, geometry, patterns, noise, seed, gains, variance, strategies
+
+
+def test_truth_stores_are_a_database(tiny_eval):
+    config, out, materials = tiny_eval
+    assert len(materials) == 4 and {m.cls for m in materials} == {"carpet", "stone"}
+    g = zarr.open_group(materials[0].path, mode="r", zarr_format=3)
+    assert g["btf"].shape == (3 * 4 * 16, 12, 12, 3) and float(g["btf"][...].min()) >= 0
+    assert g.attrs["complete"] and g.attrs["kind"] == "evaluation-truth"
+
+
+def test_variance_over_bands_equals_the_whole_texture(tiny_eval):
+    from btfcore.reconstruct import texture_variance
+    from tasks.evaluate_acquisition import (
+        _geometry, _read_rows, _reduce_variance, band_variance, demultiplex_views, noisy_rows)
+    from btfcore.colour import to_log_yuv
+
+    config, out, materials = tiny_eval
+    m, geometry, patterns, noise, seed, gains, variance, _ = _setup(config, out, materials, materials[0].material_id)
+    truth = _read_rows(m.path, 0, geometry.height)
+    _, mux = noisy_rows(truth, 0, gains, patterns, geometry, noise, seed)
+    x = to_log_yuv(demultiplex_views(mux, patterns, geometry))
+    for i in range(3):
+        np.testing.assert_allclose(variance[i], texture_variance(x[..., i].reshape(geometry.n_lv, -1)), rtol=1e-6)
+    other = _reduce_variance([band_variance(m.path, a, b, gains, patterns, geometry, noise, seed)
+                              for a, b in ((0, 12),)])
+    np.testing.assert_allclose(other, variance, rtol=1e-5)
+
+
+@pytest.mark.parametrize("band_rows", [1, 4, 5])
+def test_chunked_reconstruction_equals_in_memory(tiny_eval, tmp_path, band_rows):
+    from tasks.evaluate_acquisition import (
+        BandScores, _read_rows, bands, create_reconstruction_store, demultiplex_views, evaluate_band, finish_scores,
+        noisy_rows, reconstruct_band)
+
+    config, out, materials = tiny_eval
+    mid = materials[1].material_id
+    m, geometry, patterns, noise, seed, gains, _, strategies = _setup(config, out, materials, mid)
+    h = geometry.height
+    # in memory: the whole texture at once
+    truth = _read_rows(m.path, 0, h)
+    single, mux = noisy_rows(truth, 0, gains, patterns, geometry, noise, seed)
+    demux = demultiplex_views(mux, patterns, geometry)
+    whole = {s.name: reconstruct_band(s, 0, h, h, truth, single, mux, 0, geometry, demux) for s in strategies}
+    # chunked: bands with halos, written to stores and reduced scores
+    write = {s.name: create_reconstruction_store(tmp_path / f"{s.name}.zarr", m.path, band_rows, s.name)
+             for s in strategies}
+    total: dict[str, BandScores] = {}
+    for a, b in bands(h, band_rows):
+        for name, sc in evaluate_band(m.path, a, b, strategies, gains, patterns, geometry, noise, seed, write).items():
+            total[name] = total.get(name, BandScores()).add(sc)
+    row_max = truth.reshape(geometry.n_lv, -1).max(1)
+    for s in strategies:
+        chunked = zarr.open_group(write[s.name], mode="r", zarr_format=3)["btf"][...]
+        # float32 GEMMs of other widths round differently; U/Y and V/Y of near-black demultiplexed texels
+        # (Y at the floor) amplify that rounding, hence a tolerance of 1e-3 of the peak
+        np.testing.assert_allclose(chunked, whole[s.name], rtol=1e-3, atol=1e-3 * float(truth.max()),
+                                   err_msg=s.name)
+        got = finish_scores(total[s.name], row_max)
+        ref = whole[s.name].astype(np.float32)
+        assert got["rel_l2_log_y"] == pytest.approx(relative_error(truth, ref, space="log_y"), rel=1e-3), s.name
+        assert got["mrmse"] == pytest.approx(mrmse(truth, ref), rel=1e-3), s.name
+        assert got["mpsnr"] == pytest.approx(mpsnr(truth, ref), rel=1e-3, abs=1e-3), s.name
+        assert got["mre"] == pytest.approx(mre(truth, ref), rel=1e-3), s.name
+
+
+def test_denoising_reduces_the_demultiplexed_error(tiny_eval):
+    """Sanity of the multiplexed path: a model projection removes noise a plain demultiplexing keeps."""
+    from tasks.evaluate_acquisition import _read_rows, demultiplex_views, noisy_rows
+
+    config, out, materials = tiny_eval
+    m, geometry, patterns, noise, seed, gains, _, _ = _setup(config, out, materials, materials[0].material_id)
+    truth = _read_rows(m.path, 0, geometry.height)
+    single, mux = noisy_rows(truth, 0, gains, patterns, geometry, noise, seed)
+    demux = demultiplex_views(mux, patterns, geometry)
+    # noise-free multiplexing demultiplexes exactly
+    from tasks.evaluate_acquisition import multiplex
+    np.testing.assert_allclose(demultiplex_views(multiplex(truth, patterns, geometry), patterns, geometry), truth,
+                               atol=1e-4 * float(truth.max()))
+    assert relative_error(truth, demux) > relative_error(truth, single) > 0
+
+
+# --------------------------------------------------------------------------- bad input
+
+
+def test_one_material_per_class_is_refused(tmp_path, dask_client):
+    dask_client.run(_drop_test_folders_from_sys_path)
+    from tasks.evaluate_acquisition import EvaluationConfig, evaluate_acquisition
+
+    config = EvaluationConfig(**{**CONFIG_KW, "materials_per_class": 1})
+    with pytest.raises(ValueError, match=r"class 'carpet' has 1 material .*at least 2.*add materials"):
+        evaluate_acquisition(tmp_path / "db", tmp_path / "out", dask_client, config)
+
+
+def test_missing_basis_is_named(tiny_eval, tmp_path):
+    import shutil
+
+    from tasks.evaluate_acquisition import leave_one_out_bases
+
+    config, out, materials = tiny_eval
+    model = tmp_path / "model.zarr"
+    shutil.copytree(out / "model.zarr", model)
+    victim = materials[2].material_id
+    shutil.rmtree(model / "materials" / victim / "als")
+    with pytest.raises(ValueError, match=rf"basis materials/{victim}/als is missing.*run the fit again"):
+        leave_one_out_bases(str(model), materials, materials[0].material_id, config.model_settings())
+
+
+def test_a_foreign_store_in_the_db_is_not_overwritten(tmp_path, dask_client):
+    dask_client.run(_drop_test_folders_from_sys_path)
+    from tasks.evaluate_acquisition import EvaluationConfig, ensure_truth_database, truth_specs
+
+    config = EvaluationConfig(**CONFIG_KW)
+    db = tmp_path / "db"
+    db.mkdir()
+    foreign = db / f"{truth_specs(config)[0].material_id}.zarr"
+    zarr.open_group(str(foreign), mode="w", zarr_format=3).attrs.put({"schema": "btf-texture", "complete": True})
+    with pytest.raises(ValueError, match="something other than a truth store.*choose another --db"):
+        ensure_truth_database(config, db, dask_client)
+    assert dict(zarr.open_group(str(foreign), mode="r", zarr_format=3).attrs)["complete"] is True
+
+
+def test_bad_config_is_refused():
+    from tasks.evaluate_acquisition import EvaluationConfig
+
+    with pytest.raises(ValueError, match="classes \\['velvet'\\] are unknown"):
+        EvaluationConfig(classes=("velvet",))
