@@ -46,7 +46,6 @@ from typing import Any
 import numpy as np
 import zarr
 
-from btfcore.abtf import patch_grid
 from btfcore.colour import from_log_yuv, to_log_yuv
 from btfcore.demultiplex import demultiplex_operator
 from btfcore.hadamard import multiplexing_patterns
@@ -115,6 +114,10 @@ class EvaluationConfig:
         reconstructions are written and rendered.
     render_size : int
         Side of the renderings, pixels.
+    keep_reconstructions : bool
+        Keep the rendered materials' reconstruction stores (about 50 MB per
+        strategy at the default scale); by default they are removed once
+        rendered.
     """
 
     device: str = "bonn-dome2"
@@ -131,6 +134,7 @@ class EvaluationConfig:
     als_components: int | None = 32
     render_materials: int = 1
     render_size: int = 64
+    keep_reconstructions: bool = False
 
     def __post_init__(self) -> None:
         problems = []
@@ -1170,6 +1174,9 @@ def evaluate_acquisition(db: str | os.PathLike, out_dir: str | os.PathLike, clie
         figures[mid] = {"renderings": renderings(truth_path, stores, folder / mid, config.render_size, client),
                         "abrdf": abrdf_images(truth_path, stores, geometry, folder / mid)}
     seconds["render"] = time.perf_counter() - t0
+    if not config.keep_reconstructions:
+        shutil.rmtree(out / "reconstructions", ignore_errors=True)
+        result["reconstructions"] = {}
     return {"schema": "btf-acquisition-evaluation", "config": config.to_json(),
             "scale": scale_of(materials, geometry, config), "model": model_path,
             "materials": result["materials"], "reconstructions": result["reconstructions"],
