@@ -8,25 +8,12 @@ import pytest
 
 
 
-#: Run in every worker (as source, so that no test module has to be importable there): workers spawned
-#: under pytest inherit ``tests/`` and ``tests/<layer>`` on ``sys.path``, where ``tests/btfcore`` (no
-#: ``__init__.py``) shadows the ``btfcore`` package as a namespace package whose ``__init__`` never runs,
-#: so ``btfcore.empca``'s ``from . import BtfWarning`` fails. Drop those folders (and such a ``btfcore``).
-WORKER_SYS_PATH_FIX = """
-import os, sys
-sys.path[:] = [p for p in sys.path if not (p.rstrip(os.sep).endswith(os.sep + "tests")
-               or ((os.sep + "tests" + os.sep) in p + os.sep and "site-packages" not in p))]
-if "btfcore" in sys.modules and getattr(sys.modules["btfcore"], "__file__", None) is None:
-    for name in [n for n in sys.modules if n == "btfcore" or n.startswith("btfcore.")]:
-        del sys.modules[name]
-"""
 
 
 def test_flow_writes_every_strategy_and_claim(tmp_path, runtime_session):
     from flows.evaluate_acquisition import evaluate_acquisition_flow
     from tasks.evaluate_acquisition import EvaluationConfig, strategy_names
 
-    runtime_session[2].run(exec, WORKER_SYS_PATH_FIX, {})
     config = EvaluationConfig(device="tiny", n_turntable=None, texture_size=12, materials_per_class=2,
                               classes=("carpet", "stone", "leather"), sampling_steps=200, als_iterations=3,
                               band_rows=6, render_materials=1, render_size=32)

@@ -57,23 +57,10 @@ def test_multiplexed_images_get_shorter_exposures():
 # --------------------------------------------------------------------------- a tiny evaluated database
 
 
-#: Run in every worker (as source, so that no test module has to be importable there): workers spawned
-#: under pytest inherit ``tests/`` and ``tests/<layer>`` on ``sys.path``, where ``tests/btfcore`` (no
-#: ``__init__.py``) shadows the ``btfcore`` package as a namespace package whose ``__init__`` never runs,
-#: so ``btfcore.empca``'s ``from . import BtfWarning`` fails. Drop those folders (and such a ``btfcore``).
-WORKER_SYS_PATH_FIX = """
-import os, sys
-sys.path[:] = [p for p in sys.path if not (p.rstrip(os.sep).endswith(os.sep + "tests")
-               or ((os.sep + "tests" + os.sep) in p + os.sep and "site-packages" not in p))]
-if "btfcore" in sys.modules and getattr(sys.modules["btfcore"], "__file__", None) is None:
-    for name in [n for n in sys.modules if n == "btfcore" or n.startswith("btfcore.")]:
-        del sys.modules[name]
-"""
 
 
 @pytest.fixture(scope="module")
 def tiny_eval(tmp_path_factory, dask_client):
-    dask_client.run(exec, WORKER_SYS_PATH_FIX, {})
     from tasks.evaluate_acquisition import EvaluationConfig, ensure_truth_database, fit_bases
     from tasks.model import discover
 
@@ -188,7 +175,6 @@ def test_denoising_reduces_the_demultiplexed_error(tiny_eval):
 
 
 def test_one_material_per_class_is_refused(tmp_path, dask_client):
-    dask_client.run(exec, WORKER_SYS_PATH_FIX, {})
     from tasks.evaluate_acquisition import EvaluationConfig, evaluate_acquisition
 
     config = EvaluationConfig(**{**CONFIG_KW, "materials_per_class": 1})
@@ -211,7 +197,6 @@ def test_missing_basis_is_named(tiny_eval, tmp_path):
 
 
 def test_a_foreign_store_in_the_db_is_not_overwritten(tmp_path, dask_client):
-    dask_client.run(exec, WORKER_SYS_PATH_FIX, {})
     from tasks.evaluate_acquisition import EvaluationConfig, ensure_truth_database, truth_specs
 
     config = EvaluationConfig(**CONFIG_KW)
