@@ -434,8 +434,9 @@ def build_strategies(bases: dict[str, Any], geometry: Geometry, light_dir: np.nd
     ----------
     bases : dict
         :func:`leave_one_out_bases`.
-    variance : (3, n_lv) ndarray
-        Per-texture variance of the demultiplexed log Y, U/Y, V/Y (the thresholded de-noising).
+    variance : (n_lv,) ndarray
+        Per-texture variance of the linear demultiplexed RGB, over texels and channels (the
+        thresholded de-noising, VMV §4.1: "unnormalised" data).
     patterns : (n_p, n_leds) ndarray
         S-matrix patterns of every view.
 
@@ -478,18 +479,22 @@ def build_strategies(bases: dict[str, Any], geometry: Geometry, light_dir: np.nd
                                    for c in CHANNELS}, "log_y": abtf_operator(U_t, all_rows, p=3, method="pinv")},
                                {"paper": "1", "basis": "3x3 ABTF", "k": k_t, "note": "truth projected (lower bound)"}))
 
-    # ---- VMV: plain demultiplexing, projection and thresholded de-noising (log space)
+    # ---- VMV §4.1: plain demultiplexing, projection and thresholded de-noising, in linear RGB on the
+    # class's linear basis (the ALS basis: orthonormal, fitted to linear radiance), the variance of the
+    # linear (unnormalised) demultiplexed textures; scored in log Y like every strategy
+    als = bases["als"]
+    k_dn = int(als.U.shape[1])
     strategies.append(Strategy("demultiplexed", "log", "demux", None, {}, {"paper": "VMV", "note": "no model"}))
-    strategies.append(Strategy("projection", "log", "demux", None,
-                               {c: solve_operator(U[c], method="projection", fused=False) for c in CHANNELS},
-                               {"paper": "VMV", "k": {c: int(U[c].shape[1]) for c in CHANNELS}}))
-    strategies.append(Strategy("thresholded", "log", "demux", None,
-                               {c: solve_operator(U[c], method="thresholded", variance=variance[i], fused=False)
-                                for i, c in enumerate(CHANNELS)},
-                               {"paper": "VMV", "decile": 9, "k": {c: int(U[c].shape[1]) for c in CHANNELS}}))
+    strategies.append(Strategy("projection", "linear", "demux", None,
+                               {"rgb": solve_operator(als.U, method="projection", fused=False)},
+                               {"paper": "VMV eq. den Brok", "basis": "class ALS (linear RGB)", "k": k_dn}))
+    thr = solve_operator(als.U, method="thresholded", variance=variance, fused=False)
+    strategies.append(Strategy("thresholded", "linear", "demux", None, {"rgb": thr},
+                               {"paper": "VMV §4.1", "basis": "class ALS (linear RGB)", "decile": 9, "k": k_dn,
+                                "variance": "linear demultiplexed RGB per texture",
+                                "condition": thr.condition}))
 
     # ---- paper 4: ALS basis, sparse (pinv / Tikhonov), multiplexed (eq. 10), sparse + multiplexed
-    als = bases["als"]
     Ua, sa = als.U, als.sigma
     k_als = int(Ua.shape[1])
     n_pairs = geometry.n_turn * geometry.n_leds
@@ -599,14 +604,13 @@ def _chan(a: tuple[np.ndarray, np.ndarray, np.ndarray], b: tuple[np.ndarray, np.
 
 def band_variance(path: str, r0: int, r1: int, gains: tuple[np.ndarray, np.ndarray], patterns: np.ndarray,
                   geometry: Geometry, noise: SensorNoise, seed: Sequence[int]) -> tuple[np.ndarray, ...]:
-    """(count, mean, M2) per channel and row of the demultiplexed log Y, U/Y, V/Y within rows r0:r1."""
+    """(count, mean, M2) per row of the linear demultiplexed RGB (texels and channels) within rows r0:r1."""
     truth = _read_rows(path, r0, r1)
     _, mux = noisy_rows(truth, r0, gains, patterns, geometry, noise, seed)
-    x = to_log_yuv(demultiplex_views(mux, patterns, geometry)).astype(np.float64)     # (n_lv, rows, w, 3)
-    x = np.moveaxis(x.reshape(geometry.n_lv, -1, 3), 2, 0)                           # (3, n_lv, m)
-    m = x.shape[2]
-    mean = x.mean(axis=2)
-    return np.float64(m), mean, ((x - mean[..., None]) ** 2).sum(axis=2)
+    x = demultiplex_views(mux, patterns, geometry).astype(np.float64).reshape(geometry.n_lv, -1)   # (n_lv, m)
+    m = x.shape[1]
+    mean = x.mean(axis=1)
+    return np.float64(m), mean, ((x - mean[:, None]) ** 2).sum(axis=1)
 
 
 @dataclass
@@ -665,6 +669,8 @@ def reconstruct_band(strategy: Strategy, r0: int, r1: int, height: int, truth_ha
         op = strategy.operators["rgb"]
         if strategy.source == "single":
             y = single_halo[strategy.rows, a:b]
+        elif strategy.source == "demux":
+            y = demux
         else:
             y = mux if strategy.rows is None else mux[strategy.rows]
         out = apply(op, y.reshape(y.shape[0], -1))
@@ -764,7 +770,7 @@ def _reduce_variance(parts: list[tuple]) -> np.ndarray:
     for p in parts[1:]:
         acc = _chan(acc, p)
     n, _, m2 = acc
-    return m2 / n                                                    # population variance per channel and row
+    return m2 / n                                                    # population variance per row
 
 
 def _operators(model_path: str, materials: list[Material], material_id: str, settings: ModelSettings,

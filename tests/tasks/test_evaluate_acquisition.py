@@ -104,15 +104,14 @@ def test_variance_over_bands_equals_the_whole_texture(tiny_eval):
     from btfcore.reconstruct import texture_variance
     from tasks.evaluate_acquisition import (
         _geometry, _read_rows, _reduce_variance, band_variance, demultiplex_views, noisy_rows)
-    from btfcore.colour import to_log_yuv
-
     config, out, materials = tiny_eval
     m, geometry, patterns, noise, seed, gains, variance, _ = _setup(config, out, materials, materials[0].material_id)
     truth = _read_rows(m.path, 0, geometry.height)
     _, mux = noisy_rows(truth, 0, gains, patterns, geometry, noise, seed)
-    x = to_log_yuv(demultiplex_views(mux, patterns, geometry))
-    for i in range(3):
-        np.testing.assert_allclose(variance[i], texture_variance(x[..., i].reshape(geometry.n_lv, -1)), rtol=1e-6)
+    # VMV §4.1: per-texture variance of the linear ("unnormalised") demultiplexed BTF, texels and channels
+    x = demultiplex_views(mux, patterns, geometry)
+    assert variance.shape == (geometry.n_lv,)
+    np.testing.assert_allclose(variance, texture_variance(x.reshape(geometry.n_lv, -1)), rtol=1e-6)
     other = _reduce_variance([band_variance(m.path, a, b, gains, patterns, geometry, noise, seed)
                               for a, b in ((0, 12),)])
     np.testing.assert_allclose(other, variance, rtol=1e-5)
@@ -169,6 +168,29 @@ def test_denoising_reduces_the_demultiplexed_error(tiny_eval):
     np.testing.assert_allclose(demultiplex_views(multiplex(truth, patterns, geometry), patterns, geometry), truth,
                                atol=1e-4 * float(truth.max()))
     assert relative_error(truth, demux) > relative_error(truth, single) > 0
+
+
+def test_vmv_denoising_is_linear_on_the_class_als_basis(tiny_eval):
+    """VMV §4.1: projection U Uᵀ B and thresholded U Ũ⁺ B̃ on the linear class basis, rows above the 9th
+    decile of the linear demultiplexed variance left out; both reproduce a BTF in the basis exactly."""
+    from btfcore.reconstruct import apply, threshold_rows
+    from tasks.evaluate_acquisition import leave_one_out_bases
+
+    config, out, materials = tiny_eval
+    mid = materials[0].material_id
+    _, geometry, _, _, _, _, variance, strategies = _setup(config, out, materials, mid)
+    U = leave_one_out_bases(str(out / "model.zarr"), materials, mid, config.model_settings())["als"].U
+    by = {s.name: s for s in strategies}
+    kept, dropped = threshold_rows(variance, 9)
+    assert 0 < len(dropped) <= 0.11 * geometry.n_lv + 1
+    B = U.astype(np.float64) @ np.random.default_rng(0).standard_normal((U.shape[1], 7))
+    for name in ("projection", "thresholded"):
+        s = by[name]
+        assert s.space == "linear" and s.source == "demux" and s.rows is None, name
+        np.testing.assert_allclose(apply(s.operators["rgb"], B.astype(np.float32)), B, atol=1e-3, err_msg=name)
+    noisy = B.copy()
+    noisy[dropped] += 100.0                            # the thresholded operator ignores the dropped textures
+    np.testing.assert_allclose(apply(by["thresholded"].operators["rgb"], noisy.astype(np.float32)), B, atol=1e-3)
 
 
 # --------------------------------------------------------------------------- bad input
