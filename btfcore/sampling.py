@@ -638,14 +638,20 @@ def _end_ritz(w: np.ndarray, X: np.ndarray, sign: np.ndarray, m: int, high: bool
     HLL[..., np.arange(m), np.arange(m)] += w[L]
     ev = np.zeros(X.shape[:-2] + (m,))
     XCt = np.swapaxes(XC, -1, -2)
+    failed = np.zeros(X.shape[:-2], bool)                      # moments that overflowed (near-singular G)
     for _ in range(iters):
         gap = wC - mu[..., None]
         gap = np.where(np.abs(gap) < 1e-300, 1e-300, gap)
         d = 1.0 / gap                                          # (..., |C|)
-        XCd = XC * d[..., None, :]
-        F1 = XCd @ XCt                                         # X_C D X_C^T = X_C Z
-        F2 = (XCd * wC) @ np.swapaxes(XCd, -1, -2)             # Z^T Lambda Z
-        F3 = XCd @ np.swapaxes(XCd, -1, -2)                    # Z^T Z
+        with np.errstate(over="ignore", invalid="ignore"):
+            XCd = XC * d[..., None, :]
+            F1 = XCd @ XCt                                     # X_C D X_C^T = X_C Z
+            F2 = (XCd * wC) @ np.swapaxes(XCd, -1, -2)         # Z^T Lambda Z
+            F3 = XCd @ np.swapaxes(XCd, -1, -2)                # Z^T Z
+        bad = ~(np.isfinite(F1).all((-2, -1)) & np.isfinite(F2).all((-2, -1)) & np.isfinite(F3).all((-2, -1)))
+        if bad.any():                                          # no prediction: these pairs are ranked last
+            failed |= bad
+            F1[bad], F2[bad], F3[bad] = 0.0, 0.0, np.eye(n)
         e3, V3 = np.linalg.eigh(F3)                            # whitening of Z (rank-deficient: drop)
         ok = e3 > 1e-10 * np.maximum(e3[..., -1:], 1e-300)
         T = V3 * np.where(ok, 1.0 / np.sqrt(np.where(ok, e3, 1.0)), 0.0)[..., None, :]
@@ -657,6 +663,7 @@ def _end_ritz(w: np.ndarray, X: np.ndarray, sign: np.ndarray, m: int, high: bool
         full = np.linalg.eigvalsh(H)
         ev = full[..., -m:] if high else full[..., :m]
         mu = ev[..., -1] if high else ev[..., 0]
+    ev[failed] = np.inf if high else 0.0                       # predicted kappa: infinite
     return ev
 
 

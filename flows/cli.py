@@ -90,8 +90,11 @@ def build_parser() -> argparse.ArgumentParser:
                        description="The main job on the embedded virtual dome: simulate two materials per class "
                                    "on the tiny dome (one per class also S-matrix multiplexed) and a white standard, "
                                    "calibrate the LEDs, ingest every capture, build the model database "
-                                   "(OUT/model) and write OUT/report.json and OUT/report.html. Later pipeline "
-                                   "stages join the demo as they land. Re-running resumes or reuses finished work.")
+                                   "(OUT/model), evaluate sparse, multiplexed and combined acquisition on a larger "
+                                   "simulated database against the thesis' claims (OUT/acquisition) and write "
+                                   "OUT/report.json and OUT/report.html. With --materials below 12 (two per class) "
+                                   "the model database and the evaluation are skipped. Re-running resumes or "
+                                   "reuses finished work.")
     p.add_argument("--out", default="demo-output", metavar="DIR", help="output folder [default: demo-output]")
     p.add_argument("--seed", type=int, default=0, help="root seed [default: 0]")
     p.add_argument("--materials", type=int, default=12, metavar="N",
@@ -245,7 +248,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="pinv/tikhonov: sparse single-light; direct: multiplexed (paper 4 eq. 10); projection/"
                         "thresholded: denoise a full demultiplexable measurement [default: pinv]")
     p.add_argument("--lam", type=float, default=None, metavar="L",
-                   help="lambda of lambda*Sigma^-1 (tikhonov needs it: 0.01 for als, 40 for log bases; direct: 0)")
+                   help="lambda of lambda*Sigma^-1 [default: tikhonov 0.01 for als, 40 for log bases (the thesis); direct 0]")
     p.add_argument("--k", type=int, default=None, metavar="K", help="use only the first K basis vectors")
     p.add_argument("--out", required=True, metavar="BTF", help="BTF store to write (.zarr)")
     p.add_argument("--overwrite", action="store_true", help="replace another store at --out once the new one is complete")

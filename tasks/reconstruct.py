@@ -47,6 +47,8 @@ from btfcore.measurement_operator import (
     single_light_rows,
 )
 from btfcore.reconstruct import (
+    LAMBDA_ALS,
+    LAMBDA_NIELSEN,
     RECONSTRUCTION_METHODS,
     SolveOperator,
     abtf_halo,
@@ -78,7 +80,10 @@ class ReconstructSettings:
     basis : {'als', 'log_y', 'abtf_log_y'}
     method : {'pinv', 'tikhonov', 'direct', 'projection', 'thresholded'}
     lam : float, optional
-        λ of :math:`\\lambda \\Sigma^{-1}` (``tikhonov`` needs it; ``direct`` defaults to 0).
+        λ of :math:`\\lambda \\Sigma^{-1}`. ``tikhonov`` defaults to the thesis' value for the
+        basis (paper 4: :data:`~btfcore.reconstruct.LAMBDA_ALS` = 0.01 for ``als``,
+        :data:`~btfcore.reconstruct.LAMBDA_NIELSEN` = 40 for the log-space bases); ``direct``
+        defaults to 0.
     k : int, optional
         Use only the first ``k`` basis vectors (default all).
     decile : float
@@ -103,6 +108,8 @@ class ReconstructSettings:
                              f"(log bases take {', '.join(_LOG_METHODS)})")
         if self.k is not None and self.k < 1:
             raise ValueError(f"k must be >= 1, got {self.k}")
+        if self.method == "tikhonov" and self.lam is None:      # the thesis' defaults (paper 4, §5)
+            object.__setattr__(self, "lam", LAMBDA_ALS if self.basis == "als" else LAMBDA_NIELSEN)
 
 
 # --------------------------------------------------------------------------- inputs

@@ -395,6 +395,16 @@ def simulation_report(out_dir: str | Path, device: Device, store_paths: Sequence
                                               for kind in ("class", "global") for k in ks]
                 for cls, row in model["table_1"].items()],
         })
+    if run.get("acquisition"):
+        acquisition = run["acquisition"]
+        sections.append({
+            "title": "Acquisition (btf evaluate acquisition): the thesis' claims, leave one out",
+            "text": f"Scale: {json.dumps(acquisition['scale'])}. Each verdict is computed from the numbers "
+                    f"beside it; tables, ABRDF images and renderings: {acquisition['report_html']}.",
+            "table": [["claim", "verdict", "numbers"]] + [
+                [f"({k}) {c['claim']}", c["verdict"], json.dumps(c["numbers"])]
+                for k, c in acquisition["claims"].items()],
+        })
     report = {"report": "btf-simulate", **run, "device": {
         "name": device.name, "n_cam": device.n_cam, "n_leds": device.n_leds, "n_turn": device.n_turn,
         "n_lv": device.n_lv, "texture_shape": list(device.texture_shape), "roi_shape": list(device.roi_shape)},

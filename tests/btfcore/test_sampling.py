@@ -186,3 +186,16 @@ def test_errors(U):
         greedy(U, 20, patch=5)
     with pytest.raises(ValueError, match=r"M_rows\[0\] = 99 is out of range"):
         multiplexed_condition(multiplexing_patterns(6), [99], np.ones((12, 2)))
+
+
+def test_greedy_survives_candidates_that_make_the_system_singular():
+    """n_s groups barely above k: some exchanges make M U singular, whose predicted spectrum
+    overflowed and stopped the sampler ('Eigenvalues did not converge') before they were ranked last."""
+    n_turn, n_cam, n_led = 3, 4, 16                                 # the tiny dome's (turntable, LED) groups
+    t, _, led = np.meshgrid(np.arange(n_turn), np.arange(n_cam), np.arange(n_led), indexing="ij")
+    groups = (t * n_led + led).ravel()
+    for seed in (0, 1, 3):
+        U = np.linalg.qr(np.random.default_rng(seed).standard_normal((192, 128)))[0]
+        result = greedy(U, 36, groups=groups)
+        assert np.isfinite(result.kappa)
+        assert result.kappa == pytest.approx(np.linalg.cond(U[result.rows]), rel=1e-6)

@@ -173,3 +173,10 @@ def test_bad_input_is_named_before_anything_is_written(tmp_path):
     with pytest.raises(ValueError, match="log space"):
         ReconstructSettings(cls="leather", basis="log_y", method="direct")
     assert not (tmp_path / "out.zarr").exists()
+
+
+def test_tikhonov_defaults_to_the_thesis_lambda_of_the_basis():
+    assert ReconstructSettings(cls="leather", basis="als", method="tikhonov").lam == 0.01      # paper 4, ALS
+    assert ReconstructSettings(cls="leather", basis="log_y", method="tikhonov").lam == 40.0   # paper 4, log bases
+    assert ReconstructSettings(cls="leather", basis="als", method="tikhonov", lam=2.0).lam == 2.0
+    assert ReconstructSettings(cls="leather", basis="als", method="pinv").lam is None
