@@ -42,9 +42,9 @@ from .reconstruct import (
     _as_basis,
     _as_lam,
     _as_sigma,
+    _denoise_operator,
     _finish,
     _regularised_solve,
-    threshold_rows,
 )
 
 __all__ = ["demultiplexing_matrix", "is_single_light", "measurement_solve_operator", "single_light_rows"]
@@ -211,21 +211,8 @@ def measurement_solve_operator(
         R, cond = _regularised_solve(g @ u, s, lam_v, "G U", hint)
         return _finish(R, u, fused, dtype, condition=cond, **kw)
     P = demultiplexing_matrix(g)                                      # (n_lv, n_meas): B_demux = G^+ y
-    dropped = None
-    if method == "projection":
-        R = (P.T @ u).T                                               # VMV §4.1: U^T G^+
-    else:
-        if variance is None:
-            raise ValueError("method='thresholded' needs variance, the (n_lv,) per-texture variance of the "
-                             "demultiplexed BTF G^+ y (btfcore.reconstruct.texture_variance)")
-        var = np.asarray(variance, dtype=np.float64)
-        if var.shape != (n_lv,):
-            raise ValueError(f"variance has shape {var.shape}; it must be ({n_lv},), one value per row of U")
-        kept, dropped = threshold_rows(var, decile)
-        Rk, cond = _regularised_solve(u[kept], None, 0.0, "U~ (U without the dropped rows)",
-                                      "use a higher decile or fewer basis vectors")
-        R_full = np.zeros((k, n_lv))
-        R_full[:, kept] = Rk                                          # VMV §4.1: U~^+ B~_demux
-        R = (P.T @ R_full.T).T
+    R, dropped, cond = _denoise_operator(u, method, variance, decile)
+    if cond is not None:
         kw["condition"] = cond
+    R = (P.T @ R.T).T                                                 # de-noise G^+ y: R G^+
     return _finish(np.ascontiguousarray(R), u, fused, dtype, dropped=dropped, **kw)

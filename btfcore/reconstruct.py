@@ -296,6 +296,28 @@ def _finish(R: np.ndarray, U: np.ndarray, fused: bool | None, dtype, **kw) -> So
     return SolveOperator(coefficients=R.astype(dt), basis=U.astype(dt), fused=F, **kw)
 
 
+def _denoise_operator(u: np.ndarray, method: str, variance: np.ndarray | None, decile: float
+                      ) -> tuple[np.ndarray, np.ndarray | None, float | None]:
+    """``(R, dropped, condition)`` of the VMV de-noising of a demultiplexed BTF: ``R = U^T``
+    (``'projection'``) or ``U~^+`` on the rows kept below ``decile`` of ``variance``, zero on the
+    dropped ones (``'thresholded'``); ``condition`` is None for the projection."""
+    n_lv, k = u.shape
+    if method == "projection":
+        return u.T.copy(), None, None                                 # VMV §4.1: U (U^T B_demux)
+    if variance is None:
+        raise ValueError("method='thresholded' needs variance, the (n_lv,) per-texture variance of the "
+                         "demultiplexed BTF (texture_variance)")
+    var = _as_float(variance, "variance", ndim=(1,))
+    if var.shape != (n_lv,):
+        raise ValueError(f"variance has shape {var.shape}; it must be ({n_lv},), one value per row of U")
+    kept, dropped = threshold_rows(var, decile)
+    Rk, cond = _regularised_solve(u[kept], None, 0.0, "U~ (U without the dropped rows)",
+                                  "use a higher decile or fewer basis vectors")
+    R = np.zeros((k, n_lv))
+    R[:, kept] = Rk                                                   # VMV §4.1: U~^+ B~_demux
+    return R, dropped, cond
+
+
 def solve_operator(
     U: np.ndarray,
     sigma: np.ndarray | None = None,
@@ -441,21 +463,8 @@ def solve_operator(
     if rows is not None:
         raise ValueError(f"method={method!r} projects the whole demultiplexed BTF; it takes no rows "
                          f"(use method='direct' with rows for sparse multiplexed measurements)")
-    if method == "projection":
-        R = u.T.copy()                                                # VMV §4.1: U (U^T B_demux)
-        dropped = None
-    else:
-        if variance is None:
-            raise ValueError("method='thresholded' needs variance, the (n_lv,) per-texture variance of the "
-                             "demultiplexed BTF (texture_variance)")
-        var = _as_float(variance, "variance", ndim=(1,))
-        if var.shape != (n_lv,):
-            raise ValueError(f"variance has shape {var.shape}; it must be ({n_lv},), one value per row of U")
-        kept, dropped = threshold_rows(var, decile)
-        Rk, cond = _regularised_solve(u[kept], None, 0.0, "U~ (U without the dropped rows)",
-                                      "use a higher decile or fewer basis vectors")
-        R = np.zeros((k, n_lv))
-        R[:, kept] = Rk                                               # VMV §4.1: U~^+ B~_demux
+    R, dropped, cond = _denoise_operator(u, method, variance, decile)
+    if cond is not None:
         kw["condition"] = cond
     if p is not None:                                                 # fold demultiplexing in: R (I (x) P)
         n_views = _views(n_lv, p)
