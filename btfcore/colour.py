@@ -42,6 +42,7 @@ __all__ = [
     "YUV_FROM_RGB",
     "cos_weight",
     "from_log_yuv",
+    "log_luminance",
     "nielsen_map",
     "nielsen_unmap",
     "reference_abrdf",
@@ -213,6 +214,38 @@ def to_log_yuv(rgb: np.ndarray, eps: float = LOG_YUV_EPS) -> np.ndarray:
     yuv[..., 1:] /= y                                               # eq. (U/Y, V/Y)  (paper 1, §3.1)
     yuv[..., :1] = np.log(y)                                        # eq. log Y  (paper 1, §3.1)
     return yuv
+
+
+def log_luminance(rgb: np.ndarray, eps: float = LOG_YUV_EPS) -> np.ndarray:
+    """The log Y channel of :func:`to_log_yuv` alone, without forming U and V.
+
+    Parameters
+    ----------
+    rgb : (..., 3) array_like
+        Linear HDR RGB, channels last.
+    eps : float
+        Floor of Y, as in :func:`to_log_yuv`.
+
+    Returns
+    -------
+    log_y : (...) ndarray
+        :math:`\\log \\max(Y, \\varepsilon)`; float32 for float32 input,
+        float64 otherwise. Equal to ``to_log_yuv(rgb, eps)[..., 0]``.
+
+    Raises
+    ------
+    ValueError
+        As :func:`to_log_yuv`.
+
+    Notes
+    -----
+    Paper 1, §3.1 (log Y), the channel the thesis' errors are computed on
+    (paper 1 Table 1, VMV Table 1).
+    """
+    e = _positive(eps, "eps")
+    x = _as_rgb(rgb, "rgb")
+    y = x @ YUV_FROM_RGB[0].astype(x.dtype)                         # eq. Y = 0.299 R + 0.587 G + 0.114 B
+    return np.log(np.maximum(y, x.dtype.type(e)))                   # eq. log Y~  (paper 1, §3.1)
 
 
 def from_log_yuv(x: np.ndarray) -> np.ndarray:

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .colour import LOG_YUV_EPS, _as_float, to_log_yuv
+from .colour import LOG_YUV_EPS, _as_float, log_luminance
 
 __all__ = ["mpsnr", "mre", "mrmse", "psnr", "relative_error", "texture_errors"]
 
@@ -52,7 +52,7 @@ def relative_error(B: np.ndarray, B_hat: np.ndarray, *, space: str = "linear",
         matrix as ``B.reshape(n_lv, -1, 3)``).
     space : {'linear', 'log_y'}
         ``'log_y'``: compare :math:`\\log \\max(Y, \\varepsilon)` of both
-        (:func:`btfcore.colour.to_log_yuv`), as paper 1's Table 1 does.
+        (:func:`btfcore.colour.log_luminance`), as paper 1's Table 1 does.
     eps : float
         Floor of Y for ``'log_y'``.
 
@@ -76,7 +76,7 @@ def relative_error(B: np.ndarray, B_hat: np.ndarray, *, space: str = "linear",
         raise ValueError(f"space must be 'linear' or 'log_y', got {space!r}")
     b, bh = _pair(B, B_hat)
     if space == "log_y":
-        b, bh = to_log_yuv(b, eps)[..., 0], to_log_yuv(bh, eps)[..., 0]   # log Y (paper 1, §3.1)
+        b, bh = log_luminance(b, eps), log_luminance(bh, eps)          # log Y (paper 1, §3.1)
     den = float(np.linalg.norm(b.ravel()))
     if den == 0:
         raise ValueError("||B||_F = 0: the relative error is undefined")

@@ -46,7 +46,7 @@ from typing import Any
 import numpy as np
 import zarr
 
-from btfcore.colour import from_log_yuv, to_log_yuv
+from btfcore.colour import from_log_yuv, log_luminance, to_log_yuv
 from btfcore.demultiplex import demultiplex_operator
 from btfcore.hadamard import multiplexing_patterns
 from btfcore.noise import SensorNoise, expose, exposure_gain
@@ -363,7 +363,8 @@ def leave_one_out_bases(model_path: str, materials: Sequence[Material], material
             if where not in group or "U" not in group[where] or not group[where].attrs.get("key"):
                 raise ValueError(f"{model_path}: basis {where} is missing (an unfinished or other model store); "
                                  "run the fit again (delete the model store to start over)")
-    merged = merge_bases(group, materials, settings, exclude=material_id, store=False, bases=EVAL_BASES)
+    merged = merge_bases(group, materials, settings, exclude=material_id, store=False, bases=EVAL_BASES,
+                         classes=[material.cls])
     return {basis: merged[basis][material.cls] for basis in EVAL_BASES}
 
 
@@ -575,6 +576,27 @@ def band_maxima(path: str, r0: int, r1: int, patterns: np.ndarray, geometry: Geo
     return truth.reshape(n, -1).max(axis=1), multiplex(truth, patterns, geometry).reshape(-1, truth[0].size).max(axis=1)
 
 
+def _expose_rows(signal: np.ndarray, r0: int, gain: np.ndarray, noise: SensorNoise, seed: Sequence[int],
+                 kind: int) -> np.ndarray:
+    """Noisy ``signal`` (texture rows ``r0 : r0 + len`` on axis 1); row ``r``'s noise comes from ``seed + [kind, r]``."""
+    out = np.empty_like(signal)
+    for i in range(signal.shape[1]):
+        out[:, i] = expose(signal[:, i], gain, noise, np.random.default_rng([*seed, kind, r0 + i]))
+    return out
+
+
+def noisy_single(truth: np.ndarray, r0: int, gains: tuple[np.ndarray, np.ndarray], noise: SensorNoise,
+                 seed: Sequence[int]) -> np.ndarray:
+    """Noisy single-light measurement of texture rows ``r0 : r0 + len``."""
+    return _expose_rows(truth, r0, gains[0], noise, seed, 0)
+
+
+def noisy_multiplexed(truth: np.ndarray, r0: int, gains: tuple[np.ndarray, np.ndarray], patterns: np.ndarray,
+                      geometry: Geometry, noise: SensorNoise, seed: Sequence[int]) -> np.ndarray:
+    """Noisy multiplexed measurement (every view under every pattern) of texture rows ``r0 : r0 + len``."""
+    return _expose_rows(multiplex(truth, patterns, geometry), r0, gains[1], noise, seed, 1)
+
+
 def noisy_rows(truth: np.ndarray, r0: int, gains: tuple[np.ndarray, np.ndarray], patterns: np.ndarray,
                geometry: Geometry, noise: SensorNoise, seed: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
     """Noisy single-light and multiplexed measurements of texture rows ``r0 : r0 + len``.
@@ -583,14 +605,8 @@ def noisy_rows(truth: np.ndarray, r0: int, gains: tuple[np.ndarray, np.ndarray],
     (``seed + [kind, r]``), so a row is measured alike in every band and halo
     that contains it.
     """
-    single = np.empty_like(truth)
-    mux_truth = multiplex(truth, patterns, geometry)
-    mux = np.empty_like(mux_truth)
-    for i in range(truth.shape[1]):
-        r = r0 + i
-        single[:, i] = expose(truth[:, i], gains[0], noise, np.random.default_rng([*seed, 0, r]))
-        mux[:, i] = expose(mux_truth[:, i], gains[1], noise, np.random.default_rng([*seed, 1, r]))
-    return single, mux
+    return (noisy_single(truth, r0, gains, noise, seed),
+            noisy_multiplexed(truth, r0, gains, patterns, geometry, noise, seed))
 
 
 def _chan(a: tuple[np.ndarray, np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray, np.ndarray]):
@@ -606,7 +622,7 @@ def band_variance(path: str, r0: int, r1: int, gains: tuple[np.ndarray, np.ndarr
                   geometry: Geometry, noise: SensorNoise, seed: Sequence[int]) -> tuple[np.ndarray, ...]:
     """(count, mean, M2) per row of the linear demultiplexed RGB (texels and channels) within rows r0:r1."""
     truth = _read_rows(path, r0, r1)
-    _, mux = noisy_rows(truth, r0, gains, patterns, geometry, noise, seed)
+    mux = noisy_multiplexed(truth, r0, gains, patterns, geometry, noise, seed)
     x = demultiplex_views(mux, patterns, geometry).astype(np.float64).reshape(geometry.n_lv, -1)   # (n_lv, m)
     m = x.shape[1]
     mean = x.mean(axis=1)
@@ -631,14 +647,28 @@ class BandScores:
                           self.n_texels + other.n_texels)
 
 
-def score_band(truth: np.ndarray, recon: np.ndarray) -> BandScores:
+@dataclass(frozen=True)
+class BandTruth:
+    """The truth's terms of :func:`score_band`, computed once per band for every strategy."""
+
+    rgb: np.ndarray            # (n_lv, rows, w, 3) linear RGB
+    log_y: np.ndarray          # (n_lv, rows, w) float64 log Y
+    ss_rows: np.ndarray        # (n_lv,) squared norm of each texture
+
+    @classmethod
+    def of(cls, truth: np.ndarray) -> "BandTruth":
+        t = truth.reshape(truth.shape[0], -1).astype(np.float64)
+        return cls(truth, log_luminance(truth).astype(np.float64), np.einsum("ij,ij->i", t, t))
+
+
+def score_band(truth: BandTruth | np.ndarray, recon: np.ndarray) -> BandScores:
     """Sums for relative L2 on log Y and the per-texture errors of mRMSE / mPSNR / mRE."""
-    ly = to_log_yuv(truth)[..., 0].astype(np.float64)
-    lh = to_log_yuv(recon)[..., 0].astype(np.float64)
-    d = (recon.astype(np.float64) - truth).reshape(truth.shape[0], -1)
-    t = truth.reshape(truth.shape[0], -1).astype(np.float64)
-    return BandScores(float(np.sum((lh - ly) ** 2)), float(np.sum(ly * ly)), np.sum(d * d, axis=1),
-                      np.sum(t * t, axis=1), int(truth.shape[1] * truth.shape[2]))
+    ref = truth if isinstance(truth, BandTruth) else BandTruth.of(truth)
+    t = ref.rgb
+    d = (recon.astype(np.float64) - t).reshape(t.shape[0], -1)
+    e = log_luminance(recon).astype(np.float64) - ref.log_y
+    return BandScores(float(np.vdot(e, e)), float(np.vdot(ref.log_y, ref.log_y)), np.einsum("ij,ij->i", d, d),
+                      ref.ss_rows, int(t.shape[1] * t.shape[2]))
 
 
 def finish_scores(s: BandScores, row_max: np.ndarray) -> dict[str, float]:
@@ -657,12 +687,14 @@ def finish_scores(s: BandScores, row_max: np.ndarray) -> dict[str, float]:
 
 def reconstruct_band(strategy: Strategy, r0: int, r1: int, height: int, truth_halo: np.ndarray,
                      single_halo: np.ndarray, mux: np.ndarray, g0: int, geometry: Geometry,
-                     demux: np.ndarray) -> np.ndarray:
+                     demux: np.ndarray, log_cache: dict[str, np.ndarray] | None = None) -> np.ndarray:
     """One strategy's reconstruction of texture rows r0:r1, linear RGB ``(n_lv, r1 - r0, w, 3)``.
 
     ``truth_halo`` and ``single_halo`` hold texture rows ``g0 : g0 + len`` (the ABTF halo);
     ``mux`` (the multiplexed measurement) and ``demux`` (it demultiplexed) rows r0:r1 only.
+    ``log_cache`` keeps the log-space conversion of a whole source between the strategies of a band.
     """
+    log_cache = {} if log_cache is None else log_cache
     a, b = r0 - g0, r1 - g0
     n_lv, w = geometry.n_lv, geometry.width
     if strategy.space == "linear":
@@ -683,8 +715,13 @@ def reconstruct_band(strategy: Strategy, r0: int, r1: int, height: int, truth_ha
                       for i, c in enumerate(CHANNELS)], axis=-1)
         return _to_rgb(x)
     source = truth_halo if strategy.source == "truth" else single_halo
-    measured = source if strategy.rows is None else source[strategy.rows]
-    x_all = to_log_yuv(measured)                                               # (n_meas, halo rows, w, 3)
+    if strategy.rows is None or len(strategy.rows) == len(source):
+        if strategy.source not in log_cache:                                   # every row: convert once per band
+            log_cache[strategy.source] = to_log_yuv(source)
+        x_all = log_cache[strategy.source]
+        x_all = x_all if strategy.rows is None else x_all[strategy.rows]
+    else:
+        x_all = to_log_yuv(source[strategy.rows])                              # (n_meas, halo rows, w, 3)
     chans = []
     for i, c in enumerate(CHANNELS):
         op = strategy.operators[c]
@@ -724,19 +761,19 @@ def evaluate_band(path: str, r0: int, r1: int, strategies: list[Strategy], gains
     halo = abtf_halo(r0, r1, h, 3) if h >= 3 else slice(r0, r1)
     g0 = halo.start
     truth_halo = _read_rows(path, halo.start, halo.stop)
-    single, mux_halo = noisy_rows(truth_halo, g0, gains, patterns, geometry, noise, seed)
+    single = noisy_single(truth_halo, g0, gains, noise, seed)
     truth = truth_halo[:, r0 - g0:r1 - g0]
-    mux = np.ascontiguousarray(mux_halo[:, r0 - g0:r1 - g0])      # each row's noise is the row's own
+    mux = noisy_multiplexed(truth, r0, gains, patterns, geometry, noise, seed)   # each row's noise is the row's own
     demux = demultiplex_views(mux, patterns, geometry)
-    scores = {}
+    scores, ref, log_cache = {}, BandTruth.of(truth), {}
     for strategy in strategies:
-        recon = reconstruct_band(strategy, r0, r1, h, truth_halo, single, mux, g0, geometry, demux)
+        recon = reconstruct_band(strategy, r0, r1, h, truth_halo, single, mux, g0, geometry, demux, log_cache)
         recon = np.asarray(recon, dtype=np.float32)
         if not np.all(np.isfinite(recon)):
             bad = np.unravel_index(int(np.argmin(np.isfinite(recon))), recon.shape)
             raise ValueError(f"{path}: strategy {strategy.name} produced a non-finite value at "
                              f"(row {bad[0]}, texel {r0 + bad[1]}, {bad[2]}); check its operator's condition")
-        scores[strategy.name] = score_band(truth, recon)
+        scores[strategy.name] = score_band(ref, recon)
         if write and strategy.name in write:
             zarr.open_group(write[strategy.name], mode="r+", zarr_format=3)["btf"][:, r0:r1] = recon
     return scores

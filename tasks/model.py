@@ -218,12 +218,23 @@ def blocks(path: str, basis: str, patch: int = 3, max_bytes: int | None = None
     :func:`btfcore.colour.to_log_yuv`; ``abtf_log_y``: non-overlapping
     ``patch x patch`` patches of ``log_y`` (:func:`btfcore.abtf.patch_matrix`);
     ``als``: linear RGB, one column per texel and channel.
+
+    When the whole matrix fits in ``max_bytes`` its blocks are read and
+    converted once and kept for every later pass (a small material: the
+    passes of a fit would otherwise each re-read and re-convert it).
     """
     btf = zarr.open_group(path, mode="r", zarr_format=3)["btf"]
     n_lv = btf.shape[0]
     multiple = patch if basis == "abtf_log_y" else 1
+    kept: list[np.ndarray] = []
+    keep = max_bytes is not None and 4 * n_lv * int(np.prod(btf.shape[1:])) // (1 if basis == "als" else 3) <= max_bytes
 
-    def source() -> Iterator[np.ndarray]:
+    def cached() -> Iterator[np.ndarray]:
+        if not kept:
+            kept.extend(read())
+        yield from kept
+
+    def read() -> Iterator[np.ndarray]:
         for r0, r1 in _bands(btf, multiple, max_bytes):
             band = np.asarray(btf[:, r0:r1])                                 # (n_lv, rows, w, 3)
             if basis == "als":
@@ -235,7 +246,7 @@ def blocks(path: str, basis: str, patch: int = 3, max_bytes: int | None = None
             else:
                 yield np.ascontiguousarray(x[..., CHANNELS.index(basis)].reshape(n_lv, -1))
 
-    return source
+    return cached if keep else read
 
 
 def _n_columns(material: Material, basis: str, patch: int) -> int:
@@ -402,15 +413,19 @@ def merge_key(keys: Sequence[str], k: int) -> str:
 
 def merge_bases(group: zarr.Group, materials: Sequence[Material], settings: ModelSettings,
                 exclude: str | None = None, store: bool = True,
-                bases: Sequence[str] = BASES) -> dict[str, dict[str, TruncatedSVD]]:
+                bases: Sequence[str] = BASES, classes: Sequence[str] | None = None
+                ) -> dict[str, dict[str, TruncatedSVD]]:
     """Per-class and global merges of ``bases`` (``abtf_log_y``: per class only).
 
     With ``exclude`` (a material id) the merges leave that material out and
     are returned, not stored: the leave-one-out bases of the evaluation,
-    which needs only the bases it projects on.
+    which needs only the bases it projects on. With ``classes`` only those
+    classes are merged and the global merge, which needs every class, is
+    skipped.
     """
     out: dict[str, dict[str, TruncatedSVD]] = {}
-    classes = sorted({m.cls for m in materials})
+    every = classes is None
+    classes = sorted({m.cls for m in materials}) if every else list(classes)
     for basis in bases:
         per_class: dict[str, tuple[TruncatedSVD, str]] = {}
         for cls in classes:
@@ -418,7 +433,7 @@ def merge_bases(group: zarr.Group, materials: Sequence[Material], settings: Mode
                        if m.cls == cls and m.material_id != exclude]
             per_class[cls] = _merged(group, f"classes/{cls}/{basis}", members, settings.k_class, store)
         out[basis] = {cls: model for cls, (model, _) in per_class.items()}
-        if basis != "abtf_log_y":      # per class first, then the class models globally (paper 1 §4.1.1)
+        if every and basis != "abtf_log_y":      # per class first, then the class models globally (paper 1 §4.1.1)
             out[basis]["__global__"] = _merged(group, f"global/{basis}", list(per_class.values()),
                                                settings.k_global, store, [f"classes/{c}/{basis}" for c in per_class])[0]
     return out

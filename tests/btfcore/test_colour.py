@@ -11,6 +11,7 @@ import pytest
 from btfcore.colour import (
     cos_weight,
     from_log_yuv,
+    log_luminance,
     nielsen_map,
     nielsen_unmap,
     reference_abrdf,
@@ -80,6 +81,14 @@ def test_log_yuv_by_hand():
     np.testing.assert_allclose(to_log_yuv([1.0, 1.0, 1.0]), [0.0, 0.0, 0.0], atol=1e-15)
     red = to_log_yuv([1.0, 0.0, 0.0])
     np.testing.assert_allclose(red, [math.log(0.299), -0.492, 0.877 * 0.701 / 0.299], rtol=1e-14)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_log_luminance_is_the_log_y_channel_of_log_yuv(rgb, dtype):
+    x = np.concatenate([rgb, -rgb[:1]]).astype(dtype)        # a row below the floor too
+    got = log_luminance(x, 1e-3)
+    assert got.dtype == dtype and got.shape == x.shape[:-1]
+    np.testing.assert_allclose(got, to_log_yuv(x, 1e-3)[..., 0], rtol=0, atol=4 * np.finfo(dtype).eps * 10)
 
 
 def test_log_yuv_below_eps_adds_grey_and_keeps_chroma():

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import shutil
+
 import numpy as np
 import pytest
 import zarr
@@ -54,6 +56,20 @@ def test_bands_split_chunks_within_the_byte_bound_and_cover_every_usable_row(tmp
         assert (r1 - r0) % multiple == 0 or r1 == usable
         if max_bytes is not None and (r1 - r0) > multiple:
             assert 4 * n_lv * (r1 - r0) * w * 3 <= max_bytes
+
+
+def test_blocks_of_a_matrix_within_the_bound_are_read_once_and_kept(tmp_path):
+    btf = np.random.default_rng(2).uniform(0.1, 1, (12, 20, 16, 3)).astype(np.float32)
+    path = _store(tmp_path / "m.zarr", btf, 8)
+    for basis in ("log_y", "abtf_log_y"):
+        kept, streamed = blocks(path, basis, max_bytes=10**7), blocks(path, basis, max_bytes=12 * 16 * 4 * 3)
+        first = list(kept())
+        np.testing.assert_array_equal(np.concatenate(first, axis=1), np.concatenate(list(streamed()), axis=1))
+        shutil.move(path, tmp_path / "moved.zarr")           # the kept source no longer needs the store
+        assert all(a is b for a, b in zip(first, kept()))
+        gone = np.concatenate(list(streamed()), axis=1)     # a streamed source reads it on every pass:
+        assert not np.array_equal(gone, np.concatenate(first, axis=1))   # zarr's fill values now
+        shutil.move(tmp_path / "moved.zarr", path)
 
 
 def test_blocks_under_a_byte_bound_hold_the_same_columns(tmp_path):
