@@ -110,25 +110,33 @@ def demultiplexing_matrix(G: np.ndarray) -> sparse.csr_matrix:
         If a block has fewer rows than columns or is rank-deficient, naming
         its first light/view column: the measurement does not determine it.
     """
-    g = np.asarray(G, dtype=np.float64)
+    g = sparse.csr_matrix(G, dtype=np.float64)                           # a dome's G is mostly zeros
+    g.eliminate_zeros()
     n_meas, n_lv = g.shape
-    nz = sparse.csr_matrix(g != 0)
+    nz = g.astype(bool).astype(np.int8)
     graph = sparse.bmat([[None, nz], [nz.T, None]], format="csr")      # rows and columns as one graph
     n_comp, label = connected_components(graph, directed=False)
-    rows_of, cols_of = label[:n_meas], label[n_meas:]
-    out = sparse.lil_matrix((n_lv, n_meas))
+    order = np.argsort(label, kind="stable")
+    starts = np.searchsorted(label[order], np.arange(n_comp + 1))
+    out_rows, out_cols, out_vals = [], [], []
     for comp in range(n_comp):
-        r, c = np.flatnonzero(rows_of == comp), np.flatnonzero(cols_of == comp)
+        members = order[starts[comp]:starts[comp + 1]]
+        r, c = members[members < n_meas], members[members >= n_meas] - n_meas
         if not c.size:
             continue
-        block = g[np.ix_(r, c)]
+        block = g[r][:, c].toarray()
         if r.size < c.size or np.linalg.matrix_rank(block) < c.size:
             raise ValueError(
                 f"G does not determine light/view pair {int(c[0])} (its block: {r.size} measured rows for {c.size} "
                 f"pairs, rank {np.linalg.matrix_rank(block) if r.size else 0}): it cannot be demultiplexed; use "
                 "method 'direct' (or 'pinv'/'tikhonov'), which fit the basis to the measurement as it is")
-        out[np.ix_(c, r)] = np.linalg.pinv(block)
-    return out.tocsr()
+        out_rows.append(np.repeat(c, r.size))
+        out_cols.append(np.tile(r, c.size))
+        out_vals.append(np.linalg.pinv(block).ravel())                   # block of G^+ (c x r)
+    if not out_rows:
+        return sparse.csr_matrix((n_lv, n_meas))
+    return sparse.csr_matrix((np.concatenate(out_vals), (np.concatenate(out_rows), np.concatenate(out_cols))),
+                             shape=(n_lv, n_meas))
 
 
 def measurement_solve_operator(

@@ -7,7 +7,6 @@ See ``docs/rendering.md``.
 
 from __future__ import annotations
 
-import contextlib
 import os
 import time
 from dataclasses import dataclass
@@ -165,16 +164,14 @@ def write_png(path: str | os.PathLike, srgb: np.ndarray) -> Path:
 
 
 def _one_blas_thread():
-    """Limit BLAS/LAPACK to one thread while rendering, when threadpoolctl is installed.
+    """Limit BLAS/LAPACK to one thread while rendering.
 
     The triangulations' barycentric transforms make many tiny LAPACK calls; on
     a machine whose cores are busy, a multi-threaded OpenBLAS turns each into a
     thread wake-up and a 6 s rendering into a minute (measured on 2 cores).
     """
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # pragma: no cover - threadpoolctl comes with scikit-learn, not required
-        return contextlib.nullcontext()
+    from threadpoolctl import threadpool_limits
+
     return threadpool_limits(1, "blas")
 
 

@@ -86,6 +86,7 @@ def test_general_G_operator_equals_solve_operator():
     G_full = measurement_matrix(N_LV, patterns=pat)
     P = demultiplexing_matrix(G_full).toarray()
     np.testing.assert_allclose(P @ G_full, np.eye(N_LV), atol=1e-10)
+    np.testing.assert_allclose(P, np.linalg.pinv(G_full), atol=1e-10)           # block by block = whole
     with pytest.raises(ValueError, match="method='direct'"):
         measurement_solve_operator(U, G, method="pinv")
     with pytest.raises(ValueError, match="cannot be demultiplexed"):
