@@ -21,7 +21,7 @@ from tasks.reconstruct import ReconstructSettings
 
 @task(name="reconstruct-bands", **RETRY_ONCE, cache_policy=NO_CACHE)
 def reconstruct_stage(measurement: str, model: str, out: str, settings: ReconstructSettings, scheduler_address: str,
-                      overwrite: bool, progress: bool) -> dict[str, Any]:
+                      overwrite: bool, progress: bool, calibration=None) -> dict[str, Any]:
     """Build the solve operator and apply it over every texel band (one Dask graph); staged output."""
     from distributed import Client
 
@@ -30,7 +30,8 @@ def reconstruct_stage(measurement: str, model: str, out: str, settings: Reconstr
 
     bar, update = _progress_bar("reconstruct", progress)
     with bar, Client(scheduler_address, set_as_default=False) as client:
-        return reconstruct_store(measurement, model, out, settings, client, overwrite=overwrite, progress=update)
+        return reconstruct_store(measurement, model, out, settings, client, overwrite=overwrite,
+                                 calibration=calibration, progress=update)
 
 
 @task(name="reconstruct-evaluation", cache_policy=NO_CACHE)
@@ -52,8 +53,10 @@ def reconstruct_evaluation(measurement: str, out: str) -> dict[str, Any]:
 
 @flow(name="btf-reconstruct", log_prints=False)
 def reconstruct_flow(measurement: str, model: str, out: str, scheduler_address: str, settings: ReconstructSettings,
-                     overwrite: bool = False, progress: bool = True) -> dict[str, Any]:
-    """Reconstruct a full BTF store from a measurement store and a class basis of a model store.
+                     overwrite: bool = False, progress: bool = True, white: str | None = None,
+                     white_albedo: float = 0.99, colour_matrix: str | None = None) -> dict[str, Any]:
+    """Reconstruct a full BTF store from a measurement store and a class basis of a model store;
+    with ``white`` / ``colour_matrix`` radiometrically corrected as ``btf ingest`` corrects.
 
     Writes ``out`` and ``<out stem>.report.json`` beside it (settings, operator
     condition, and for a simulated capture the relative errors against its
@@ -62,10 +65,14 @@ def reconstruct_flow(measurement: str, model: str, out: str, scheduler_address: 
     from tasks.report import write_json
 
     start = time.perf_counter()
-    stage = reconstruct_stage(measurement, model, out, settings, scheduler_address, overwrite, progress)
+    from flows.ingest import calibration_stage
+
+    calibration = calibration_stage(white, white_albedo, colour_matrix)
+    stage = reconstruct_stage(measurement, model, out, settings, scheduler_address, overwrite, progress, calibration)
     report = {"report": "btf-reconstruct", "input": measurement, "model": model, "out": out,
               "settings": {"class": settings.cls, "basis": settings.basis, "method": settings.method,
                            "lam": settings.lam, "k": settings.k},
+              "radiometric": None if calibration is None else calibration.info,
               "stages": {"reconstruct": stage}, "errors_against_truth": reconstruct_evaluation(measurement, out)}
     report["seconds"] = round(time.perf_counter() - start, 3)
     write_json(Path(out).with_name(Path(out).stem + ".report.json"), report)

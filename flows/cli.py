@@ -126,15 +126,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "replaces it, with its report, only once complete and checked.")
     p.add_argument("capture", metavar="CAPTURE", help="capture store (.zarr)")
     p.add_argument("--out", required=True, metavar="BTF", help="BTF store to write (.zarr)")
-    p.add_argument("--white", default=None, metavar="WHITE_BTF",
-                   help="radiometric correction: the uncorrected `btf ingest` output of a white-standard capture "
-                        "on the same dome (simulate one with --classes white-standard); each LED's RGB gain is "
-                        "measured on it and divided out, so the BTF is in the ground truth's unit")
-    p.add_argument("--white-albedo", type=float, default=0.99, metavar="A",
-                   help="albedo of the white standard [default: 0.99]")
-    p.add_argument("--colour-matrix", default=None, metavar="JSON",
-                   help='camera colour matrix applied after the LED gains: {"matrix": [[...], [...], [...]]}, '
-                        "3x3 or 3x4 (affine)")
+    _add_calibration_args(p)
     p.add_argument("--overwrite", action="store_true",
                    help="recompute and replace the output at --out (kept until the new one is complete and checked)")
 
@@ -252,9 +244,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--k", type=int, default=None, metavar="K", help="use only the first K basis vectors")
     p.add_argument("--out", required=True, metavar="BTF", help="BTF store to write (.zarr)")
     p.add_argument("--overwrite", action="store_true", help="replace another store at --out once the new one is complete")
+    _add_calibration_args(p, " (for a model of corrected BTFs; the measurement store itself is uncorrected: "
+                             "single-light rows are corrected before the solve, multiplexed rows get one operator "
+                             "per colour channel)")
     from flows.acquisition_cli import add_acquisition_commands
     add_acquisition_commands(sub)  # btf sample, btf plan, btf render
     return parser
+
+
+def _add_calibration_args(p: argparse.ArgumentParser, note: str = "") -> None:
+    """``--white``, ``--white-albedo`` and ``--colour-matrix`` of ``btf ingest`` and ``btf reconstruct``."""
+    p.add_argument("--white", default=None, metavar="WHITE_BTF",
+                   help="radiometric correction: the uncorrected `btf ingest` output of a white-standard capture "
+                        "on the same dome (simulate one with --classes white-standard); each LED's RGB gain is "
+                        "measured on it and divided out, so the BTF is in the ground truth's unit" + note)
+    p.add_argument("--white-albedo", type=float, default=0.99, metavar="A",
+                   help="albedo of the white standard [default: 0.99]")
+    p.add_argument("--colour-matrix", default=None, metavar="JSON",
+                   help='camera colour matrix applied after the LED gains: {"matrix": [[...], [...], [...]]}, '
+                        "3x3 or 3x4 (affine)")
 
 
 def _simulation_config(args: argparse.Namespace):
@@ -417,7 +425,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.command == "reconstruct":  # bad input is named before a cluster starts
             from tasks.reconstruct import ReconstructSettings, check_inputs
             config = ReconstructSettings(cls=args.cls, basis=args.basis, method=args.method, lam=args.lam, k=args.k)
-            check_inputs(args.measurement, args.model, config)
+            from tasks.radiometric import load_calibration
+            check_inputs(args.measurement, args.model, config,
+                         load_calibration(args.white, args.white_albedo, args.colour_matrix))
         device = _calibration(args) if args.command == "import-raw" else None
         if args.command == "resample":  # bad input is named before a cluster starts
             from tasks.resample import check_inputs
@@ -451,7 +461,8 @@ def _run_flow(args: argparse.Namespace, address: str, config, device) -> dict:
     if args.command == "reconstruct":
         from flows.acquisition import reconstruct_flow
         report = reconstruct_flow(args.measurement, args.model, args.out, address, config, overwrite=args.overwrite,
-                                  progress=progress)
+                                  progress=progress, white=args.white, white_albedo=args.white_albedo,
+                                  colour_matrix=args.colour_matrix)
         return {"command": "reconstruct", "out": str(Path(args.out).resolve()), **report["stages"]["reconstruct"],
                 "errors_against_truth": report["errors_against_truth"]}
     if args.command == "build-db":

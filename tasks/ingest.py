@@ -51,7 +51,7 @@ from zarr.core.buffer import default_buffer_prototype
 
 from btfcore.demultiplex import demultiplex_operator
 from btfcore.ingest import IngestSettings, lv_directions, process_view, view_window
-from tasks.radiometric import Calibration
+from tasks.radiometric import CALIBRATED_UNITS, Calibration
 from tasks.staging import commit_staged as _commit_staged
 from tasks.staging import staged_target, staging_path, store_attrs
 from tasks.store import CaptureStore, open_capture_store, to_json_attr
@@ -174,7 +174,7 @@ def create_btf_store(path: str | os.PathLike, capture: CaptureStore, settings: I
                 group.create_array(name, shape=data.shape, dtype="float64", chunks=data.shape,
                                    compressors=None)[...] = data
         if calibration.led_gain is not None:
-            units = "radiance relative to a unit-irradiance white light (white-standard calibrated)"
+            units = CALIBRATED_UNITS
     group.attrs.put(to_json_attr({
         "schema": SCHEMA_NAME, "schema_version": SCHEMA_VERSION, "units": units,
         "radiometric": None if calibration is None else calibration.info,
@@ -297,8 +297,8 @@ def ingest_capture(capture_path: str | os.PathLike, out_path: str | os.PathLike,
             raise ValueError(
                 f"{capture_path}: a plan capture that is not a full set ({capture.meta.plan.get('strategy')!r} plan) "
                 "is ingested to a measurement store, which is not radiometrically corrected (a multiplexed "
-                "row mixes LEDs whose RGB gains differ); ingest it without --white/--colour-matrix and "
-                "reconstruct with a model of uncorrected BTFs of the same dome (docs/measurement-store.md)")
+                "row mixes LEDs whose RGB gains differ); ingest it without --white/--colour-matrix and pass "
+                "them to `btf reconstruct` instead (docs/measurement-store.md)")
         return ingest_measurement(capture_path, out_path, client, settings=settings, overwrite=overwrite,
                                   progress=progress, commit=commit)
     if calibration is not None and calibration.led_gain is not None and len(calibration.led_gain) != capture.n_leds:

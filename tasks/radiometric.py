@@ -31,6 +31,10 @@ from btfcore.radiometric import as_colour_matrix, led_calibration
 WHITE_ALBEDO = 0.99
 
 
+#: Units of a BTF whose LED gains were divided out (``btf ingest`` / ``btf reconstruct`` with ``--white``).
+CALIBRATED_UNITS = "radiance relative to a unit-irradiance white light (white-standard calibrated)"
+
+
 @dataclass(frozen=True)
 class Calibration:
     """What ``btf ingest`` applies after demultiplexing.

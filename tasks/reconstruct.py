@@ -22,6 +22,13 @@ M log(B) from MB"):
   measurements only (each row one light/view pair), mapped to log space first;
   ``pinv`` or ``tikhonov`` (``projection`` too for a full BTF).
 
+Radiometric correction (``--white``, ``--colour-matrix``; a measurement store
+itself is never corrected): the basis is then one of corrected BTFs, and with
+per-LED RGB gains ``D_c`` the uncorrected measurement is ``G D_c B_c`` per
+channel. Single-light rows (and BTF stores) are corrected before the solve,
+each row by its LED's gain; multiplexed rows get one operator per channel on
+``G D_c`` and the colour matrix after the solve (:class:`RowCorrection`).
+
 See docs/measurement-store.md.
 """
 
@@ -40,6 +47,7 @@ import numpy as np
 import zarr
 
 from btfcore.colour import from_log_yuv, to_log_yuv
+from btfcore.radiometric import apply_colour_matrix, apply_led_calibration
 from btfcore.measurement_operator import (
     demultiplexing_matrix,
     is_single_light,
@@ -202,9 +210,59 @@ def _bands(h: int, n_rows: int, w: int) -> list[tuple[int, int]]:
 # --------------------------------------------------------------------------- operators
 
 
+@dataclass(frozen=True)
+class RowCorrection:
+    """The radiometric correction of one reconstruction, prepared for its measurement.
+
+    Attributes
+    ----------
+    gain : (n_lv, 3) ndarray
+        RGB gain of the LED of every full light/view row (the white standard's
+        per-LED gains repeated over the views).
+    matrix : (3, 3) or (3, 4) ndarray or None
+        Camera RGB -> target RGB, applied after the gains.
+    measured_gain : (n_meas, 3) ndarray or None
+        Gains of the measured rows when each measures one LED (single-light
+        rows, a BTF store): they are corrected before the solve. None for
+        multiplexed rows: the operators are then per channel on ``G D_c``.
+    """
+
+    gain: np.ndarray
+    matrix: np.ndarray | None
+    measured_gain: np.ndarray | None
+
+    @classmethod
+    def of(cls, led_gain: np.ndarray | None, matrix: np.ndarray | None, G: np.ndarray | None, n_lv: int
+           ) -> "RowCorrection | None":
+        if led_gain is None and matrix is None:
+            return None
+        n_leds = 1 if led_gain is None else len(led_gain)
+        gain = np.ones((n_lv, 3)) if led_gain is None else np.tile(np.asarray(led_gain, dtype=np.float64),
+                                                                  (n_lv // n_leds, 1))
+        measured = gain if G is None else gain[single_light_rows(G)] if is_single_light(G) else None
+        return cls(gain, None if matrix is None else np.asarray(matrix, dtype=np.float64), measured)
+
+    def rows(self, x: np.ndarray, gain: np.ndarray) -> np.ndarray:
+        """Rows of ``x`` (rows, ..., 3) divided by their ``gain`` (rows, 3), then the colour matrix."""
+        x = apply_led_calibration(np.asarray(x, dtype=np.float32), gain)             # eq. B = W / g_l
+        return x if self.matrix is None else apply_colour_matrix(x, self.matrix).astype(np.float32, copy=False)
+
+
+def _corrected_G(G: np.ndarray | None, correction: RowCorrection | None) -> list[np.ndarray | None]:
+    """The measurement matrices the operators are built on: ``[G]``, or ``[G D_r, G D_g, G D_b]``
+    for a multiplexed measurement of corrected radiance (its rows mix LEDs whose gains differ)."""
+    if correction is None or correction.measured_gain is not None:
+        return [G]
+    return [G * correction.gain[None, :, c] for c in range(3)]                     # eq. measured_c = G D_c B_c
+
+
+
+
 def build_operators(settings: ReconstructSettings, model: zarr.Group, G: np.ndarray | None, n_lv: int,
-                    variance: np.ndarray | None = None, model_path: Any = "model") -> dict[str, SolveOperator]:
-    """The solve operators of a reconstruction, by part: ``{"rgb"}`` (ALS) or ``{"y", "u", "v"}`` (log bases).
+                    variance: np.ndarray | None = None, model_path: Any = "model",
+                    correction: RowCorrection | None = None) -> dict[str, SolveOperator]:
+    """The solve operators of a reconstruction, by part: ``{"rgb"}`` (ALS), ``{"r", "g", "b"}`` (ALS on a
+    multiplexed measurement with a radiometric correction) or ``{"y", "u", "v"}`` (log bases).
 
     Parameters
     ----------
@@ -212,6 +270,8 @@ def build_operators(settings: ReconstructSettings, model: zarr.Group, G: np.ndar
         The measurement matrix; None for a full BTF (the identity).
     variance : (n_lv,) ndarray, optional
         ``thresholded``: per-texture variance of the demultiplexed BTF.
+    correction : RowCorrection, optional
+        The radiometric correction (per-channel operators on ``G D_c`` for multiplexed rows).
 
     Raises
     ------
@@ -224,8 +284,10 @@ def build_operators(settings: ReconstructSettings, model: zarr.Group, G: np.ndar
         U, sigma = _basis(model, s.cls, "als", s.k, model_path)
         if G is None:
             return {"rgb": solve_operator(U, sigma, method=s.method, lam=s.lam, variance=variance, decile=s.decile)}
-        return {"rgb": measurement_solve_operator(U, G, sigma, method=s.method, lam=s.lam, variance=variance,
-                                                  decile=s.decile)}
+        Gs = _corrected_G(G, correction)
+        return {part: measurement_solve_operator(U, Gc, sigma, method=s.method, lam=s.lam, variance=variance,
+                                                 decile=s.decile)
+                for part, Gc in zip(("rgb",) if len(Gs) == 1 else ("r", "g", "b"), Gs)}
     if G is not None and not is_single_light(G):
         raise ValueError(f"--basis {s.basis} reconstructs in log space, but the measurement has multiplexed rows "
                          "(log(M B) is not M log(B), paper 4 §4); use --basis als with --method direct")
@@ -255,7 +317,7 @@ def build_operators(settings: ReconstructSettings, model: zarr.Group, G: np.ndar
 
 
 def reconstruct_chunk(ops: dict[str, SolveOperator], measured: np.ndarray, *, out_rows: tuple[int, int] | None = None,
-                      height: int | None = None) -> np.ndarray:
+                      height: int | None = None, correction: RowCorrection | None = None) -> np.ndarray:
     """Reconstruct a band of textures from measured ones (in memory).
 
     Parameters
@@ -267,11 +329,20 @@ def reconstruct_chunk(ops: dict[str, SolveOperator], measured: np.ndarray, *, ou
         :func:`btfcore.reconstruct.abtf_halo`, or the whole texture).
     out_rows, height : optional
         ABTF basis: the output rows and the texture height.
+    correction : RowCorrection, optional
+        Radiometric correction: of the measured rows before the solve, or of
+        the per-channel result after it.
 
     Returns
     -------
     B : (n_lv, rows_out, w, 3) ndarray of float32
     """
+    if correction is not None and correction.measured_gain is not None:
+        measured = correction.rows(measured, correction.measured_gain)
+    if "r" in ops:                                                   # per channel on G D_c, then the matrix
+        out = np.stack([apply(ops[part], measured[..., i]) for i, part in enumerate("rgb")], axis=-1)
+        out = out.astype(np.float32, copy=False)
+        return out if correction.matrix is None else apply_colour_matrix(out, correction.matrix).astype(np.float32)
     if "rgb" in ops:
         return apply(ops["rgb"], measured).astype(np.float32, copy=False)
     x = to_log_yuv(np.asarray(measured, dtype=np.float32))           # paper 1 §3.1: log Y, U/Y, V/Y
@@ -287,7 +358,7 @@ def reconstruct_chunk(ops: dict[str, SolveOperator], measured: np.ndarray, *, ou
 
 
 def reconstruct_band(in_path: str, out_path: str, ops: dict[str, SolveOperator], band: int,
-                     bands: list[tuple[int, int]]) -> int:
+                     bands: list[tuple[int, int]], correction: RowCorrection | None = None) -> int:
     """Reconstruct texture rows ``bands[band]`` and write them (whole chunks of ``btf``), then its marker."""
     src = zarr.open_group(in_path, mode="r", zarr_format=3)
     arr = src["measured"] if "measured" in src else src["btf"]
@@ -296,9 +367,9 @@ def reconstruct_band(in_path: str, out_path: str, ops: dict[str, SolveOperator],
     p = ops["y"].patch_size if "y" in ops else None
     if p is not None:
         halo = abtf_halo(r0, r1, h, p)
-        out = reconstruct_chunk(ops, np.asarray(arr[:, halo]), out_rows=(r0, r1), height=h)
+        out = reconstruct_chunk(ops, np.asarray(arr[:, halo]), out_rows=(r0, r1), height=h, correction=correction)
     else:
-        out = reconstruct_chunk(ops, np.asarray(arr[:, r0:r1]))
+        out = reconstruct_chunk(ops, np.asarray(arr[:, r0:r1]), correction=correction)
     if not np.isfinite(out).all():
         raise ValueError(f"{in_path}: the reconstruction of texture rows {r0}:{r1} is not finite (a log basis "
                          "extrapolated beyond the float range); use --method tikhonov or --basis als")
@@ -308,8 +379,9 @@ def reconstruct_band(in_path: str, out_path: str, ops: dict[str, SolveOperator],
     return band
 
 
-def _variance(in_path: str, G: np.ndarray | None, bands: list[tuple[int, int]], client: Any) -> np.ndarray:
-    """Per-texture variance of the demultiplexed BTF ``G^+ y``, streamed over bands on the cluster."""
+def _variance(in_path: str, G: np.ndarray | None, bands: list[tuple[int, int]], client: Any,
+              correction: RowCorrection | None = None) -> np.ndarray:
+    """Per-texture variance of the demultiplexed (and corrected) BTF ``G^+ y``, streamed over bands on the cluster."""
     import dask
 
     P = None if G is None else demultiplexing_matrix(G)
@@ -317,14 +389,34 @@ def _variance(in_path: str, G: np.ndarray | None, bands: list[tuple[int, int]], 
     def band_block(r0: int, r1: int) -> np.ndarray:
         src = zarr.open_group(in_path, mode="r", zarr_format=3)
         arr = src["measured"] if "measured" in src else src["btf"]
-        y = np.asarray(arr[:, r0:r1], dtype=np.float64).reshape(arr.shape[0], -1)
-        return y if P is None else np.asarray(P @ y)
+        y = np.asarray(arr[:, r0:r1], dtype=np.float64)
+        x = y if P is None else np.asarray(P @ y.reshape(y.shape[0], -1)).reshape((P.shape[0],) + y.shape[1:])
+        if correction is not None:
+            x = correction.rows(x, correction.gain)
+        return x.reshape(x.shape[0], -1)
 
     blocks = client.compute([dask.delayed(band_block)(r0, r1) for r0, r1 in bands], sync=True)
     return texture_variance(iter(blocks))
 
 
-def check_inputs(in_path: str | os.PathLike, model_path: str | os.PathLike, settings: ReconstructSettings) -> None:
+def _correction(data: zarr.Group, kind: str, G: np.ndarray | None, calibration: Any, in_path: Any
+                ) -> RowCorrection | None:
+    """The :class:`RowCorrection` of ``calibration`` (:class:`tasks.radiometric.Calibration`) for this input."""
+    if calibration is None:
+        return None
+    if data.attrs.get("radiometric"):
+        raise ValueError(f"{in_path}: the {kind} store is already radiometrically corrected "
+                         f"({data.attrs.get('radiometric')}); reconstruct it without --white/--colour-matrix")
+    n_turn, n_cam, n_leds = data.attrs["turntable_cameras_leds"]
+    if calibration.led_gain is not None and len(calibration.led_gain) != n_leds:
+        raise ValueError(f"{calibration.info.get('white_standard')}: the white standard has "
+                         f"{len(calibration.led_gain)} LEDs, the measurement {in_path} {n_leds}; "
+                         "calibrate with a white standard captured on the same dome")
+    return RowCorrection.of(calibration.led_gain, calibration.colour_matrix, G, n_turn * n_cam * n_leds)
+
+
+def check_inputs(in_path: str | os.PathLike, model_path: str | os.PathLike, settings: ReconstructSettings,
+                 calibration: Any = None) -> None:
     """Every check of :func:`reconstruct_store` that needs no cluster (``btf reconstruct`` runs it before one
     starts): the input and model stores, their light/view samplings, the basis and the solve itself.
 
@@ -337,12 +429,14 @@ def check_inputs(in_path: str | os.PathLike, model_path: str | os.PathLike, sett
     model = open_model(model_path)
     _check_sampling(model, data, in_path)
     n_turn, n_cam, n_leds = data.attrs["turntable_cameras_leds"]
+    G = _measurement_G(data, kind)
+    correction = _correction(data, kind, G, calibration, in_path)
     if settings.method != "thresholded":                  # its operator needs a pass over the data
-        build_operators(settings, model, _measurement_G(data, kind), n_turn * n_cam * n_leds, None, model_path)
+        build_operators(settings, model, G, n_turn * n_cam * n_leds, None, model_path, correction)
 
 
 def reconstruct_hash(data: zarr.Group, model: zarr.Group, settings: ReconstructSettings,
-                     band: int | None = None) -> str:
+                     band: int | None = None, calibration: Any = None) -> str:
     """What the output depends on: the input's ingest hash, the basis keys, the settings."""
     names = ("als",) if settings.basis == "als" else (settings.basis, "u_y", "v_y")
     keys = {}
@@ -353,7 +447,7 @@ def reconstruct_hash(data: zarr.Group, model: zarr.Group, settings: ReconstructS
             keys[n] = None
     payload = {"input": data.attrs.get("ingest_hash") or data.attrs.get("reconstruct_hash"), "bases": keys,
                "rows_id": model.attrs.get("rows_id"), "settings": asdict(settings), "schema": "btf-texture/1.0",
-               "band": band}
+               "band": band, "calibration": None if calibration is None else calibration.key()}
     return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:16]
 
 
@@ -375,7 +469,7 @@ def _create_output(path: Path, data: zarr.Group, key: str, attrs: dict[str, Any]
 
 def reconstruct_store(in_path: str | os.PathLike, model_path: str | os.PathLike, out_path: str | os.PathLike,
                       settings: ReconstructSettings, client: Any, *, overwrite: bool = False,
-                      band_rows: int | None = None,
+                      band_rows: int | None = None, calibration: Any = None,
                       progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
     """Reconstruct a full BTF store from a measurement (or a BTF) and a class basis, on a Dask cluster.
 
@@ -396,6 +490,9 @@ def reconstruct_store(in_path: str | os.PathLike, model_path: str | os.PathLike,
     band_rows : int, optional
         Texture rows per band (a Dask task and a chunk of the output); default
         one BTF-store chunk, :func:`tasks.ingest.band_rows`.
+    calibration : tasks.radiometric.Calibration, optional
+        Radiometric correction of the (uncorrected) measurement, for a model
+        of corrected BTFs (:class:`RowCorrection`).
 
     Returns
     -------
@@ -420,7 +517,7 @@ def reconstruct_store(in_path: str | os.PathLike, model_path: str | os.PathLike,
     model = open_model(model_path)
     _check_sampling(model, data, in_path)
     out = Path(out_path)
-    key = reconstruct_hash(data, model, settings, band_rows)
+    key = reconstruct_hash(data, model, settings, band_rows, calibration)
     finish_interrupted_commit(out)
     existing = store_attrs(out)
     if existing is not None and not overwrite:
@@ -436,9 +533,10 @@ def reconstruct_store(in_path: str | os.PathLike, model_path: str | os.PathLike,
     n_lv = n_turn * n_cam * n_leds
     bands = _bands(h, n_leds, w) if band_rows is None else [(r, min(r + band_rows, h)) for r in range(0, h, band_rows)]
     band = bands[0][1]
-    variance = _variance(str(in_path), G, bands, client) if settings.method == "thresholded" else None
-    ops = build_operators(settings, model, G, n_lv, variance, model_path)     # bad input raises here
-    condition = float(ops["rgb" if "rgb" in ops else "y"].condition)
+    correction = _correction(data, kind, G, calibration, in_path)
+    variance = _variance(str(in_path), G, bands, client, correction) if settings.method == "thresholded" else None
+    ops = build_operators(settings, model, G, n_lv, variance, model_path, correction)   # bad input raises here
+    condition = float(ops["y"].condition) if "y" in ops else max(float(op.condition) for op in ops.values())
     staging = staging_path(out)
     attrs_stage = store_attrs(staging)
     if attrs_stage is not None and attrs_stage.get("reconstruct_hash") == key:
@@ -446,10 +544,15 @@ def reconstruct_store(in_path: str | os.PathLike, model_path: str | os.PathLike,
     else:
         if attrs_stage is not None:
             shutil.rmtree(staging)
-        attrs = {"schema": "btf-texture", "schema_version": "1.0", "units": data.attrs.get("units"),
+        from tasks.radiometric import CALIBRATED_UNITS
+
+        units = CALIBRATED_UNITS if calibration is not None and calibration.led_gain is not None else \
+            data.attrs.get("units")
+        attrs = {"schema": "btf-texture", "schema_version": "1.0", "units": units,
                  "lv_order": ["turntable", "camera", "light"], "texture_shape": [h, w],
                  "turntable_cameras_leds": [n_turn, n_cam, n_leds], "material": data.attrs.get("material"),
                  "source": str(in_path), "settings": data.attrs.get("settings"),
+                 "radiometric": None if calibration is None else calibration.info,
                  "reconstructed_from": {"input": str(in_path), "input_kind": kind, "model": str(model_path),
                                         "rows_id": model.attrs.get("rows_id"), **asdict(settings),
                                         "n_meas": int(G.shape[0]) if G is not None else n_lv,
@@ -459,7 +562,8 @@ def reconstruct_store(in_path: str | os.PathLike, model_path: str | os.PathLike,
     written = group["written"][...]
     pending = np.flatnonzero(written == 0).tolist()
     ops_d = dask.delayed(ops, pure=True)
-    tasks = [dask.delayed(reconstruct_band, pure=False)(str(in_path), str(staging), ops_d, b, bands) for b in pending]
+    tasks = [dask.delayed(reconstruct_band, pure=False)(str(in_path), str(staging), ops_d, b, bands, correction)
+             for b in pending]
     futures = client.compute(tasks)                                  # one graph over every pending band
     for done, future in enumerate(as_completed(futures), 1):
         future.result()

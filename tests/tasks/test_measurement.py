@@ -181,3 +181,60 @@ def test_tikhonov_defaults_to_the_thesis_lambda_of_the_basis():
     assert ReconstructSettings(cls="leather", basis="log_y", method="tikhonov").lam == 40.0   # paper 4, log bases
     assert ReconstructSettings(cls="leather", basis="als", method="tikhonov", lam=2.0).lam == 2.0
     assert ReconstructSettings(cls="leather", basis="als", method="pinv").lam is None
+
+
+@pytest.mark.parametrize("case", ["sparse log_y pinv", "multiplexed als direct", "full multiplexed als thresholded"])
+def test_radiometric_correction_of_an_uncorrected_measurement(tmp_path, dask_client, case):
+    """A corrected BTF in the basis' span, measured uncorrected (``G D_c B_c``, then the inverse colour
+    matrix): ``--white``/``--colour-matrix`` at reconstruction give the corrected BTF back."""
+    from btfcore.radiometric import apply_colour_matrix
+    from tasks.radiometric import Calibration
+    from tasks.reconstruct import RowCorrection, build_operators
+
+    rng = np.random.default_rng(5)
+    k = 5
+    gain = rng.uniform(0.5, 2.0, (N_LEDS, 3))                              # per-LED RGB gains
+    matrix = np.array([[1.2, -0.1, 0.0], [0.05, 0.9, 0.05], [0.0, -0.2, 1.1]])
+    calibration = Calibration(led_gain=gain, colour_matrix=matrix, info={"white_standard": "test"})
+    if case.startswith("sparse"):
+        bases = {name: _orthonormal(rng, N_LV, k) for name in ("log_y", "u_y", "v_y")}
+        x = np.stack([(bases[n][0] @ rng.normal(scale=s, size=(k, H * W))).reshape(N_LV, H, W)
+                      for n, s in (("log_y", 1.0), ("u_y", 0.1), ("v_y", 0.1))], axis=-1)
+        B = from_log_yuv(x)                                                 # corrected, exactly in the span
+        settings = ReconstructSettings(cls="leather", basis="log_y", method="pinv")
+        G = _sparse_G(np.sort(rng.choice(N_LV, 12, replace=False)))
+    else:
+        bases = {"als": _orthonormal(rng, N_LV, k)}
+        B = (bases["als"][0] @ rng.normal(size=(k, H * W * 3))).reshape(N_LV, H, W, 3)
+        pat = multiplexing_patterns(N_LEDS)
+        n_rows = N_TURN * N_CAM * pat.shape[0]
+        thresholded = case.endswith("thresholded")
+        G = measurement_matrix(N_LV, rows=None if thresholded else np.arange(0, n_rows, 2), patterns=pat)
+        settings = ReconstructSettings(cls="leather", basis="als", method="thresholded" if thresholded else "direct")
+    model = _model(tmp_path / "model.zarr", bases)
+    camera = apply_colour_matrix(B, np.linalg.inv(matrix))                 # what the camera saw, LEDs corrected
+    raw = camera * np.tile(gain, (N_LV // N_LEDS, 1))[:, None, None, :]    # and before the LED gains
+    meas = _measurement(tmp_path / "m.zarr", raw, G)
+    check_inputs(meas, model, settings, calibration)
+    ops = build_operators(settings, open_model(model), G, N_LV, np.ones(N_LV) if settings.method == "thresholded"
+                          else None)
+    assert set(ops) == ({"y", "u", "v"} if case.startswith("sparse") else {"rgb"})
+    correction = RowCorrection.of(gain, matrix, G, N_LV)                   # multiplexed: one operator per channel
+    assert set(build_operators(settings, open_model(model), G, N_LV, np.ones(N_LV), correction=correction)) == \
+        ({"y", "u", "v"} if case.startswith("sparse") else {"r", "g", "b"})
+    summary = reconstruct_store(meas, model, tmp_path / "out.zarr", settings, dask_client, band_rows=3,
+                                calibration=calibration)
+    out = zarr.open_group(str(tmp_path / "out.zarr"), mode="r")
+    assert out.attrs["radiometric"] == {"white_standard": "test"} and "calibrated" in out.attrs["units"]
+    np.testing.assert_allclose(out["btf"][...], B, rtol=2e-3, atol=2e-4 * np.abs(B).max())
+    # without the correction the same measurement reconstructs to something else, and the key differs
+    plain = reconstruct_store(meas, model, tmp_path / "plain.zarr", settings, dask_client, band_rows=3)
+    assert not np.allclose(zarr.open_group(str(tmp_path / "plain.zarr"), mode="r")["btf"][...], B, rtol=0.05)
+    assert summary["out"] != plain["out"]
+    # a corrected BTF store is not corrected twice
+    with pytest.raises(ValueError, match="already radiometrically corrected"):
+        check_inputs(tmp_path / "out.zarr", model, ReconstructSettings(cls="leather", basis=settings.basis,
+                                                                         method="projection"), calibration)
+    wrong = Calibration(led_gain=gain[:3], colour_matrix=None, info={"white_standard": "small"})
+    with pytest.raises(ValueError, match="small: the white standard has 3 LEDs.*8"):
+        check_inputs(meas, model, settings, wrong)
