@@ -214,6 +214,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--eval-materials-per-class", type=int, default=2, metavar="N",
                    help="acquisition: materials per class (>= 2 for leave-one-out) [default: 2]")
     p.add_argument("--eval-seed", type=int, default=0, metavar="S", help="acquisition: root seed [default: 0]")
+    p.add_argument("--eval-render", type=int, default=1, metavar="N",
+                   help="acquisition: materials (one per class, structured classes first) whose reconstructions "
+                        "are rendered and scored by rendering PSNR; each adds one reconstruction store per "
+                        "strategy and its renderings [default: 1]")
     p.add_argument("--report", default="report.json", metavar="PATH", help="where to write the metrics [default: report.json]")
 
     p = sub.add_parser("validate", help="check capture stores and list every problem",
@@ -320,7 +324,7 @@ def _evaluate_acquisition(args: argparse.Namespace) -> int:
         from tasks.evaluate_acquisition import EvaluationConfig
         config = EvaluationConfig(device=args.eval_device, n_turntable=args.eval_turntable,
                                   texture_size=args.eval_texture, materials_per_class=args.eval_materials_per_class,
-                                  seed=args.eval_seed)
+                                  seed=args.eval_seed, render_materials=args.eval_render)
     except ValueError as exc:
         print(f"btf evaluate acquisition: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT

@@ -151,6 +151,9 @@ class EvaluationConfig:
             problems.append(f"n_turntable must be >= 1, got {self.n_turntable}")
         if self.band_rows < 1:
             problems.append(f"band_rows must be >= 1, got {self.band_rows}")
+        if not 0 <= self.render_materials <= len(self.classes):
+            problems.append(f"render_materials must lie in [0, {len(self.classes)}] (one per class), "
+                            f"got {self.render_materials}")
         if not 0 < self.abrdf_k_fraction <= 1:
             problems.append(f"abrdf_k_fraction must lie in (0, 1], got {self.abrdf_k_fraction}")
         if problems:

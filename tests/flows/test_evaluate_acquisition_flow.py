@@ -53,7 +53,8 @@ def test_cli_evaluate_ingest_still_needs_truth_and_btf(capsys):
     assert "--truth" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("argv,msg", [(["--eval-materials-per-class", "0"], "materials_per_class must be >= 1")])
+@pytest.mark.parametrize("argv,msg", [(["--eval-materials-per-class", "0"], "materials_per_class must be >= 1"),
+                                      (["--eval-render", "7"], "render_materials must lie in [0, 6]")])
 def test_cli_bad_scale(argv, msg, tmp_path, capsys):
     from flows.cli import main
 
