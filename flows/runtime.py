@@ -27,7 +27,10 @@ DEFAULT_PROFILE = Path(__file__).resolve().parents[1] / "infra" / "local.yaml"
 #: a large array is freed, after which band-sized arrays come from the heap and
 #: fragment it: fitting one material's five bases then held 880 MB after its
 #: ALS basis and peaked at 980 MB; with the threshold fixed at 4 MiB, 323 MB
-#: and 599 MB (docs/benchmarks.md, out of core).
+#: and 599 MB (docs/benchmarks.md, out of core). The heap keeps up to 8 MiB
+#: free at its top (trim threshold): trimming at 64 KiB gave every small array
+#: fresh pages, which cost the acquisition evaluation a third of its time in
+#: page faults (sys time 2.0 s vs 0.5 s per material, docs/benchmarks.md).
 WORKER_ENVIRON = {
     "OMP_NUM_THREADS": "1",
     "MKL_NUM_THREADS": "1",
@@ -35,7 +38,7 @@ WORKER_ENVIRON = {
     "NUMEXPR_NUM_THREADS": "1",
     "NUMPY_MADVISE_HUGEPAGE": "0",
     "MALLOC_MMAP_THRESHOLD_": "4194304",
-    "MALLOC_TRIM_THRESHOLD_": "65536",
+    "MALLOC_TRIM_THRESHOLD_": str(8 << 20),
 }
 
 
