@@ -55,6 +55,9 @@ SCHEMA_VERSION = "1.0"
 #: Bases fitted per material and merged per class and globally (``abtf_log_y`` per class only).
 CHANNELS = ("log_y", "u_y", "v_y")
 BASES = CHANNELS + ("abtf_log_y", "als")
+#: A further basis ``btf build-db`` does not fit, but the acquisition evaluation does: the plain truncated
+#: SVD of the linear RGB BTF, the de-noising basis of VMV §4.1 (``D ~ U Sigma V^T``).
+LINEAR_SVD = "rgb_svd"
 
 
 @dataclass(frozen=True)
@@ -85,7 +88,7 @@ class ModelSettings:
         return _hash(asdict(self))
 
 
-THESIS_K = {"log_y": 200, "u_y": 100, "v_y": 100, "abtf_log_y": 200, "als": 64, "merged": 2048}
+THESIS_K = {"log_y": 200, "u_y": 100, "v_y": 100, "abtf_log_y": 200, "als": 64, LINEAR_SVD: 64, "merged": 2048}
 
 
 def _hash(payload: Any) -> str:
@@ -217,7 +220,7 @@ def blocks(path: str, basis: str, patch: int = 3, max_bytes: int | None = None
     ``log_y``/``u_y``/``v_y``: one column per texel of that channel of
     :func:`btfcore.colour.to_log_yuv`; ``abtf_log_y``: non-overlapping
     ``patch x patch`` patches of ``log_y`` (:func:`btfcore.abtf.patch_matrix`);
-    ``als``: linear RGB, one column per texel and channel.
+    ``als`` and ``rgb_svd``: linear RGB, one column per texel and channel.
 
     When the whole matrix fits in ``max_bytes`` its blocks are read and
     converted once and kept for every later pass (a small material: the
@@ -227,7 +230,8 @@ def blocks(path: str, basis: str, patch: int = 3, max_bytes: int | None = None
     n_lv = btf.shape[0]
     multiple = patch if basis == "abtf_log_y" else 1
     kept: list[np.ndarray] = []
-    keep = max_bytes is not None and 4 * n_lv * int(np.prod(btf.shape[1:])) // (1 if basis == "als" else 3) <= max_bytes
+    linear = basis in ("als", LINEAR_SVD)
+    keep = max_bytes is not None and 4 * n_lv * int(np.prod(btf.shape[1:])) // (1 if linear else 3) <= max_bytes
 
     def cached() -> Iterator[np.ndarray]:
         if not kept:
@@ -237,7 +241,7 @@ def blocks(path: str, basis: str, patch: int = 3, max_bytes: int | None = None
     def read() -> Iterator[np.ndarray]:
         for r0, r1 in _bands(btf, multiple, max_bytes):
             band = np.asarray(btf[:, r0:r1])                                 # (n_lv, rows, w, 3)
-            if basis == "als":
+            if linear:
                 yield band.reshape(n_lv, -1)
                 continue
             x = to_log_yuv(band)
@@ -253,7 +257,7 @@ def _n_columns(material: Material, basis: str, patch: int) -> int:
     h, w = material.texture_shape
     if basis == "abtf_log_y":
         return (h // patch) * (w // patch)
-    return h * w * (3 if basis == "als" else 1)
+    return h * w * (3 if basis in ("als", LINEAR_SVD) else 1)
 
 
 # --------------------------------------------------------------------------- the store
@@ -314,11 +318,12 @@ def material_key(material: Material, basis: str, settings: ModelSettings) -> str
     return _hash({"ingest_hash": material.ingest_hash, "basis": basis, "settings": settings.key()})
 
 
-def fit_material(model_path: str, material: Material, settings: ModelSettings) -> dict[str, Any]:
-    """Fit every basis of one material (skipping those already stored with the same key)."""
+def fit_material(model_path: str, material: Material, settings: ModelSettings,
+                 bases: Sequence[str] = BASES) -> dict[str, Any]:
+    """Fit ``bases`` of one material (skipping those already stored with the same key)."""
     group = zarr.open_group(model_path, mode="r+", zarr_format=3)
     done = {}
-    for basis in BASES:
+    for basis in bases:
         where = f"materials/{material.material_id}/{basis}"
         key = material_key(material, basis, settings)
         if stored_key(group, where) == key:
