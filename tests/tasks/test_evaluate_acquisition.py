@@ -181,6 +181,15 @@ def test_vmv_denoising_is_linear_on_the_class_truncated_svd(tiny_eval):
     mid = materials[0].material_id
     _, geometry, _, _, _, _, variance, strategies = _setup(config, out, materials, mid)
     bases = leave_one_out_bases(str(out / "model.zarr"), materials, mid, config.model_settings())
+    # merging only the held-out class gives that class' bases of the merge of every class
+    import zarr
+
+    from tasks.evaluate_acquisition import EVAL_BASES
+    from tasks.model import merge_bases
+    every = merge_bases(zarr.open_group(str(out / "model.zarr"), mode="r"), materials, config.model_settings(),
+                        exclude=mid, store=False, bases=EVAL_BASES)
+    for name in EVAL_BASES:
+        np.testing.assert_array_equal(bases[name].U, every[name][materials[0].cls].U)
     U = bases[LINEAR_SVD].U
     assert bases[LINEAR_SVD].method != "als" and not np.allclose(U[:, :2], bases["als"].U[:, :2])
     by = {s.name: s for s in strategies}
