@@ -509,7 +509,6 @@ def reconstruct_store(in_path: str | os.PathLike, model_path: str | os.PathLike,
     FileExistsError
         Another store at ``out_path`` without ``overwrite``.
     """
-    import dask
     from distributed import as_completed
 
     start = time.perf_counter()
@@ -561,10 +560,9 @@ def reconstruct_store(in_path: str | os.PathLike, model_path: str | os.PathLike,
         group = _create_output(staging, data, key, attrs, len(bands), band)
     written = group["written"][...]
     pending = np.flatnonzero(written == 0).tolist()
-    ops_d = dask.delayed(ops, pure=True)
-    tasks = [dask.delayed(reconstruct_band, pure=False)(str(in_path), str(staging), ops_d, b, bands, correction)
-             for b in pending]
-    futures = client.compute(tasks)                                  # one graph over every pending band
+    ops_f = client.scatter(ops, broadcast=True)                      # sent once to each worker, not per band
+    futures = [client.submit(reconstruct_band, str(in_path), str(staging), ops_f, b, bands, correction, pure=False)
+               for b in pending]
     for done, future in enumerate(as_completed(futures), 1):
         future.result()
         if progress is not None:
