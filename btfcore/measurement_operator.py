@@ -34,7 +34,6 @@ from numpy.typing import DTypeLike
 from scipy import sparse
 from scipy.sparse.csgraph import connected_components
 
-from ._lowrank import check_finite
 from .reconstruct import (
     RECONSTRUCTION_METHODS,
     THRESHOLD_DECILE,
@@ -47,54 +46,74 @@ from .reconstruct import (
     _regularised_solve,
 )
 
-__all__ = ["demultiplexing_matrix", "is_single_light", "measurement_solve_operator", "single_light_rows"]
+__all__ = ["as_sparse_G", "demultiplexing_matrix", "is_single_light", "measurement_solve_operator",
+           "single_light_rows"]
 
 
-def _as_G(G, n_lv: int) -> np.ndarray:
-    g = np.asarray(G, dtype=np.float64)
-    if g.ndim != 2 or g.shape[1] != n_lv or g.shape[0] == 0:
+def as_sparse_G(G) -> sparse.csr_matrix:
+    """``G`` (dense or scipy.sparse) as a float64 CSR matrix without stored zeros.
+
+    A dome's ``G`` is mostly zeros (a row measures one LED, or one pattern's
+    LEDs, of one view), so every function here works on this form.
+    """
+    g = sparse.csr_matrix(G, dtype=np.float64)
+    g.eliminate_zeros()
+    g.sort_indices()
+    return g
+
+
+def _as_G(G, n_lv: int) -> sparse.csr_matrix:
+    if not sparse.issparse(G) and np.ndim(G) != 2:
+        raise ValueError(f"G has shape {np.shape(G)}; it must be (n_meas, {n_lv}): one row per measured texture, "
+                         "one column per light/view pair of the basis")
+    g = as_sparse_G(G)
+    if g.shape[1] != n_lv or g.shape[0] == 0:
         raise ValueError(f"G has shape {g.shape}; it must be (n_meas, {n_lv}): one row per measured texture, one "
                          "column per light/view pair of the basis")
-    check_finite(g, "G")
-    empty = np.flatnonzero(~(g != 0).any(axis=1))
+    bad = np.flatnonzero(~np.isfinite(g.data))
+    if bad.size:
+        row = int(np.searchsorted(g.indptr, bad[0], side="right") - 1)
+        raise ValueError(f"G[{row}, {int(g.indices[bad[0]])}] = {float(g.data[bad[0]])!r}: G must be finite "
+                         f"({bad.size} NaN/Inf values in it); fix or mask them first")
+    empty = np.flatnonzero(g.getnnz(axis=1) == 0)
     if empty.size:
         raise ValueError(f"G row {int(empty[0])} is all zero: a measurement of nothing; drop the row")
     return g
 
 
-def _times_basis(g: np.ndarray, u: np.ndarray) -> np.ndarray:
-    """``G U`` through the sparse ``G``: a dome's row measures one LED or one pattern's LEDs of one view, so
-    the product costs ``nnz(G) k`` instead of ``n_meas n_lv k`` (at the thesis' scale 0.2 GFLOP, not 235)."""
-    return np.asarray(sparse.csr_matrix(g) @ u)
+def is_single_light(G) -> bool:
+    """Whether every row of ``G`` (dense or sparse) measures one light/view pair with weight 1 (a sparse
+    single-light capture)."""
+    g = as_sparse_G(G)
+    return bool(g.getnnz(axis=1).max(initial=0) == 1 and np.all(g.data == 1))
 
 
-def is_single_light(G: np.ndarray) -> bool:
-    """Whether every row of ``G`` measures one light/view pair with weight 1 (a sparse single-light capture)."""
-    g = np.asarray(G)
-    nz = g != 0
-    return bool(nz.sum(axis=1).max(initial=0) == 1 and np.all(g[nz] == 1))
-
-
-def single_light_rows(G: np.ndarray) -> np.ndarray:
-    """The light/view pair each row of a single-light ``G`` measures, ``(n_meas,)`` int64.
+def single_light_rows(G) -> np.ndarray:
+    """The light/view pair each row of a single-light ``G`` (dense or sparse) measures, ``(n_meas,)`` int64.
 
     Raises
     ------
     ValueError
         If a row mixes several pairs (a multiplexed row), naming it.
     """
-    g = np.asarray(G)
-    nz = g != 0
-    counts = nz.sum(axis=1)
-    bad = np.flatnonzero((counts != 1) | ~np.all(np.where(nz, g == 1, True), axis=1))
+    g = as_sparse_G(G)
+    counts = g.getnnz(axis=1)
+    off = np.repeat(np.arange(g.shape[0]), counts)[g.data != 1]                # rows with a weight other than 1
+    bad = np.flatnonzero((counts != 1) | np.isin(np.arange(g.shape[0]), off))
     if bad.size:
         r = int(bad[0])
         raise ValueError(f"G row {r} measures {int(counts[r])} light/view pairs with weights "
-                         f"{np.unique(g[r][nz[r]]).tolist()}: not a single-light measurement")
-    return np.argmax(nz, axis=1).astype(np.int64)
+                         f"{np.unique(g[r].data).tolist()}: not a single-light measurement")
+    return g.indices.astype(np.int64)
 
 
-def demultiplexing_matrix(G: np.ndarray) -> sparse.csr_matrix:
+def _times_basis(g: sparse.csr_matrix, u: np.ndarray) -> np.ndarray:
+    """``G U`` through the sparse ``G``: a dome's row measures one LED or one pattern's LEDs of one view, so
+    the product costs ``nnz(G) k`` instead of ``n_meas n_lv k`` (at the thesis' scale 0.2 GFLOP, not 235)."""
+    return np.asarray(g @ u)
+
+
+def demultiplexing_matrix(G: np.ndarray | sparse.spmatrix) -> sparse.csr_matrix:
     """:math:`G^\\dagger` as a sparse matrix, block by block.
 
     Parameters
@@ -116,8 +135,7 @@ def demultiplexing_matrix(G: np.ndarray) -> sparse.csr_matrix:
         If a block has fewer rows than columns or is rank-deficient, naming
         its first light/view column: the measurement does not determine it.
     """
-    g = sparse.csr_matrix(G, dtype=np.float64)                           # a dome's G is mostly zeros
-    g.eliminate_zeros()
+    g = as_sparse_G(G)                                                   # a dome's G is mostly zeros
     n_meas, n_lv = g.shape
     nz = g.astype(bool).astype(np.int8)
     graph = sparse.bmat([[None, nz], [nz.T, None]], format="csr")      # rows and columns as one graph
@@ -163,8 +181,9 @@ def measurement_solve_operator(
     ----------
     U : (n_lv, k) array_like
         Basis; its rows are the columns of ``G``.
-    G : (n_meas, n_lv) array_like
-        Measurement matrix: measured textures ``y = G B``.
+    G : (n_meas, n_lv) array_like or scipy.sparse matrix
+        Measurement matrix: measured textures ``y = G B`` (used as a sparse
+        matrix: a dome's rows have one or a pattern's few non-zeros).
     sigma : (k,) array_like, optional
         Singular values of ``U``; needed when ``lam > 0``.
     method : {'pinv', 'tikhonov', 'direct', 'projection', 'thresholded'}

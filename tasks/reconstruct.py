@@ -45,10 +45,12 @@ from typing import Any, Callable
 
 import numpy as np
 import zarr
+from scipy import sparse
 
 from btfcore.colour import from_log_yuv, to_log_yuv
 from btfcore.radiometric import apply_colour_matrix, apply_led_calibration
 from btfcore.measurement_operator import (
+    as_sparse_G,
     demultiplexing_matrix,
     is_single_light,
     measurement_solve_operator,
@@ -195,9 +197,15 @@ def _basis(model: zarr.Group, cls: str, name: str, k: int | None, model_path: An
     return U, sigma
 
 
-def _measurement_G(data: zarr.Group, kind: str) -> np.ndarray | None:
-    """``G`` of a measurement store; ``None`` for a BTF store (the identity)."""
-    return None if kind == "btf" else np.asarray(data["G"][...], dtype=np.float64)
+def _measurement_G(data: zarr.Group, kind: str) -> sparse.csr_matrix | None:
+    """``G`` of a measurement store, read block of rows by block into a sparse matrix (dense, a full S-matrix
+    capture at the thesis' scale would take 5.5 GB); ``None`` for a BTF store (the identity)."""
+    if kind == "btf":
+        return None
+    arr = data["G"]
+    step = max(1, int(arr.chunks[0]))
+    return sparse.vstack([as_sparse_G(np.asarray(arr[r:r + step])) for r in range(0, arr.shape[0], step)],
+                         format="csr")
 
 
 def _bands(h: int, n_rows: int, w: int) -> list[tuple[int, int]]:
@@ -232,7 +240,7 @@ class RowCorrection:
     measured_gain: np.ndarray | None
 
     @classmethod
-    def of(cls, led_gain: np.ndarray | None, matrix: np.ndarray | None, G: np.ndarray | None, n_lv: int
+    def of(cls, led_gain: np.ndarray | None, matrix: np.ndarray | None, G: np.ndarray | sparse.csr_matrix | None, n_lv: int
            ) -> "RowCorrection | None":
         if led_gain is None and matrix is None:
             return None
@@ -248,17 +256,17 @@ class RowCorrection:
         return x if self.matrix is None else apply_colour_matrix(x, self.matrix).astype(np.float32, copy=False)
 
 
-def _corrected_G(G: np.ndarray | None, correction: RowCorrection | None) -> list[np.ndarray | None]:
+def _corrected_G(G: np.ndarray | sparse.csr_matrix | None, correction: RowCorrection | None) -> list[np.ndarray | sparse.csr_matrix | None]:
     """The measurement matrices the operators are built on: ``[G]``, or ``[G D_r, G D_g, G D_b]``
     for a multiplexed measurement of corrected radiance (its rows mix LEDs whose gains differ)."""
     if correction is None or correction.measured_gain is not None:
         return [G]
-    return [G * correction.gain[None, :, c] for c in range(3)]                     # eq. measured_c = G D_c B_c
+    return [as_sparse_G(as_sparse_G(G).multiply(correction.gain[None, :, c])) for c in range(3)]  # eq. G D_c
 
 
 
 
-def build_operators(settings: ReconstructSettings, model: zarr.Group, G: np.ndarray | None, n_lv: int,
+def build_operators(settings: ReconstructSettings, model: zarr.Group, G: np.ndarray | sparse.csr_matrix | None, n_lv: int,
                     variance: np.ndarray | None = None, model_path: Any = "model",
                     correction: RowCorrection | None = None) -> dict[str, SolveOperator]:
     """The solve operators of a reconstruction, by part: ``{"rgb"}`` (ALS), ``{"r", "g", "b"}`` (ALS on a
@@ -266,7 +274,7 @@ def build_operators(settings: ReconstructSettings, model: zarr.Group, G: np.ndar
 
     Parameters
     ----------
-    G : (n_meas, n_lv) ndarray or None
+    G : (n_meas, n_lv) ndarray, scipy.sparse matrix or None
         The measurement matrix; None for a full BTF (the identity).
     variance : (n_lv,) ndarray, optional
         ``thresholded``: per-texture variance of the demultiplexed BTF.
@@ -379,7 +387,7 @@ def reconstruct_band(in_path: str, out_path: str, ops: dict[str, SolveOperator],
     return band
 
 
-def _variance(in_path: str, G: np.ndarray | None, bands: list[tuple[int, int]], client: Any,
+def _variance(in_path: str, G: np.ndarray | sparse.csr_matrix | None, bands: list[tuple[int, int]], client: Any,
               correction: RowCorrection | None = None) -> np.ndarray:
     """Per-texture variance of the demultiplexed (and corrected) BTF ``G^+ y``, streamed over bands on the cluster."""
     import dask
@@ -399,7 +407,7 @@ def _variance(in_path: str, G: np.ndarray | None, bands: list[tuple[int, int]], 
     return texture_variance(iter(blocks))
 
 
-def _correction(data: zarr.Group, kind: str, G: np.ndarray | None, calibration: Any, in_path: Any
+def _correction(data: zarr.Group, kind: str, G: np.ndarray | sparse.csr_matrix | None, calibration: Any, in_path: Any
                 ) -> RowCorrection | None:
     """The :class:`RowCorrection` of ``calibration`` (:class:`tasks.radiometric.Calibration`) for this input."""
     if calibration is None:

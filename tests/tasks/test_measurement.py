@@ -238,3 +238,35 @@ def test_radiometric_correction_of_an_uncorrected_measurement(tmp_path, dask_cli
     wrong = Calibration(led_gain=gain[:3], colour_matrix=None, info={"white_standard": "small"})
     with pytest.raises(ValueError, match="small: the white standard has 3 LEDs.*8"):
         check_inputs(meas, model, settings, wrong)
+
+
+def test_sparse_G_gives_the_dense_results():
+    """Every function of btfcore.measurement_operator takes G dense or sparse alike (tasks read G sparse)."""
+    from scipy import sparse
+
+    from btfcore.measurement_operator import is_single_light, single_light_rows
+
+    rng = np.random.default_rng(6)
+    U, sigma = _orthonormal(rng, N_LV, 6)
+    pat = multiplexing_patterns(N_LEDS)
+    full = measurement_matrix(N_LV, patterns=pat)
+    mux = full[np.sort(rng.choice(len(full), 20, replace=False))]
+    single = _sparse_G(np.sort(rng.choice(N_LV, 12, replace=False)))
+    for G, method, lam in ((mux, "direct", 0.1), (single, "tikhonov", 0.1), (full, "thresholded", None)):
+        kw = {"method": method, "lam": lam, "variance": np.linspace(1.0, 2.0, N_LV), "dtype": np.float64}
+        a = measurement_solve_operator(U, G, sigma, **kw)
+        b = measurement_solve_operator(U, sparse.csr_matrix(G), sigma, **kw)
+        z = rng.normal(size=(G.shape[0], 9))
+        np.testing.assert_allclose(apply(a, z), apply(b, z), rtol=1e-12, atol=1e-12)
+        assert is_single_light(G) == is_single_light(sparse.csr_matrix(G)) == (G is single)
+    np.testing.assert_array_equal(single_light_rows(single), single_light_rows(sparse.csr_matrix(single)))
+    np.testing.assert_array_equal(demultiplexing_matrix(full).toarray(),
+                                  demultiplexing_matrix(sparse.csr_matrix(full)).toarray())
+    bad = sparse.lil_matrix(single)
+    bad[3, 0] = np.nan
+    with pytest.raises(ValueError, match=r"G\[3, 0\] = nan: G must be finite"):
+        measurement_solve_operator(U, bad.tocsr(), sigma, method="tikhonov", lam=0.1)
+    two = single.copy()
+    two[2] += single[3]                                       # row 2 now measures two pairs
+    with pytest.raises(ValueError, match="G row 2 measures 2 light/view pairs"):
+        single_light_rows(sparse.csr_matrix(two))
