@@ -474,6 +474,19 @@ def open_measurement(path: str | os.PathLike) -> zarr.Group:
     return group
 
 
+def read_G(group: zarr.Group) -> "sparse.csr_matrix":
+    """A measurement store's ``G``, read block of rows by block into a float64 CSR matrix (dense, a full
+    S-matrix capture at the thesis' scale would take 5.5 GB)."""
+    from scipy import sparse
+
+    from btfcore.measurement_operator import as_sparse_G
+
+    arr = group["G"]
+    step = max(1, int(arr.chunks[0]))
+    return sparse.vstack([as_sparse_G(np.asarray(arr[r:r + step])) for r in range(0, arr.shape[0], step)],
+                         format="csr")
+
+
 def measurement_error_against_truth(path: str | os.PathLike, capture_path: str | os.PathLike) -> dict[str, float]:
     """Relative L2 error of a measurement store against ``G`` times a simulated capture's ground truth.
 
@@ -485,8 +498,7 @@ def measurement_error_against_truth(path: str | os.PathLike, capture_path: str |
     capture = open_capture_store(capture_path)
     measured = np.asarray(group["measured"][...], dtype=np.float64)
     truth = np.asarray(capture.truth["btf"][...], dtype=np.float64)
-    G = np.asarray(group["G"][...], dtype=np.float64)
-    expected = (G @ truth.reshape(truth.shape[0], -1)).reshape(measured.shape)
+    expected = np.asarray(read_G(group) @ truth.reshape(truth.shape[0], -1)).reshape(measured.shape)
     scale = (measured * expected).sum(axis=(1, 2)) / np.maximum((measured ** 2).sum(axis=(1, 2)), 1e-300)
     est = measured * scale[:, None, None, :]
     return {"measurement_relative_l2_linear": float(np.linalg.norm(est - expected) / np.linalg.norm(expected))}

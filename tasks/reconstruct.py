@@ -200,12 +200,9 @@ def _basis(model: zarr.Group, cls: str, name: str, k: int | None, model_path: An
 def _measurement_G(data: zarr.Group, kind: str) -> sparse.csr_matrix | None:
     """``G`` of a measurement store, read block of rows by block into a sparse matrix (dense, a full S-matrix
     capture at the thesis' scale would take 5.5 GB); ``None`` for a BTF store (the identity)."""
-    if kind == "btf":
-        return None
-    arr = data["G"]
-    step = max(1, int(arr.chunks[0]))
-    return sparse.vstack([as_sparse_G(np.asarray(arr[r:r + step])) for r in range(0, arr.shape[0], step)],
-                         format="csr")
+    from tasks.measurement import read_G
+
+    return None if kind == "btf" else read_G(data)
 
 
 def _bands(h: int, n_rows: int, w: int) -> list[tuple[int, int]]:
