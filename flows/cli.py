@@ -314,37 +314,14 @@ def _export_exr(args: argparse.Namespace) -> int:
     return 0
 
 
-def _evaluate_acquisition(args: argparse.Namespace) -> int:
-    """``btf evaluate acquisition``: the flow of flows/evaluate_acquisition.py on the profile's cluster."""
-    from flows.runtime import RuntimeUnavailable, runtime
-
-    try:
-        if not args.db or not args.out:
-            raise ValueError("give --db TRUTH_DB_DIR and --out DIR")
-        from tasks.evaluate_acquisition import EvaluationConfig
-        config = EvaluationConfig(device=args.eval_device, n_turntable=args.eval_turntable,
-                                  texture_size=args.eval_texture, materials_per_class=args.eval_materials_per_class,
-                                  seed=args.eval_seed, render_materials=args.eval_render)
-    except ValueError as exc:
-        print(f"btf evaluate acquisition: {exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    start = time.perf_counter()
-    try:
-        with runtime(args.cluster) as (_profile, _url, client):
-            from flows.evaluate_acquisition import evaluate_acquisition_flow
-            summary = evaluate_acquisition_flow(args.db, args.out, client.scheduler.address, config,
-                                                progress=not args.no_progress)
-    except RuntimeUnavailable as exc:
-        print(f"btf evaluate acquisition: {exc}", file=sys.stderr)
-        return EXIT_RUNTIME
-    except (ValueError, FileExistsError, FileNotFoundError) as exc:
-        print(f"btf evaluate acquisition: {exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    print(json.dumps({"command": "evaluate acquisition", "scale": summary["scale"],
-                      "claims": {k: c["verdict"] for k, c in summary["claims"].items()},
-                      "report_json": summary["report_json"], "report_html": summary["report_html"],
-                      "seconds": round(time.perf_counter() - start, 2)}, indent=2))
-    return 0
+def _evaluation_config(args: argparse.Namespace):
+    """``btf evaluate acquisition``'s :class:`tasks.evaluate_acquisition.EvaluationConfig` (bad input raises)."""
+    if not args.db or not args.out:
+        raise ValueError("give --db TRUTH_DB_DIR and --out DIR")
+    from tasks.evaluate_acquisition import EvaluationConfig
+    return EvaluationConfig(device=args.eval_device, n_turntable=args.eval_turntable, texture_size=args.eval_texture,
+                            materials_per_class=args.eval_materials_per_class, seed=args.eval_seed,
+                            render_materials=args.eval_render)
 
 
 def _evaluate(args: argparse.Namespace) -> int:
@@ -352,8 +329,6 @@ def _evaluate(args: argparse.Namespace) -> int:
     from tasks.report import write_json
     from tasks.store import CaptureStoreError, open_capture_store
 
-    if args.what == "acquisition":
-        return _evaluate_acquisition(args)
     if not args.truth or not args.btf:
         print("btf evaluate ingest: give --truth SIM and --btf BTF", file=sys.stderr)
         return 2
@@ -417,7 +392,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return _validate(args)
     if args.command == "export-exr":
         return _export_exr(args)
-    if args.command == "evaluate":
+    if args.command == "evaluate" and args.what != "acquisition":
         return _evaluate(args)
     if args.command == "schedule":
         return _schedule(args)
@@ -426,6 +401,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     try:
         config = _simulation_config(args) if args.command == "simulate" else None
+        if args.command == "evaluate":  # acquisition: its scale is checked before a cluster starts
+            config = _evaluation_config(args)
         if args.command == "reconstruct":  # bad input is named before a cluster starts
             from tasks.reconstruct import ReconstructSettings, check_inputs
             config = ReconstructSettings(cls=args.cls, basis=args.basis, method=args.method, lam=args.lam, k=args.k)
@@ -462,6 +439,12 @@ def _run_flow(args: argparse.Namespace, address: str, config, device) -> dict:
     from flows.simulate import demo_flow, simulate_flow
 
     progress = not args.no_progress
+    if args.command == "evaluate":
+        from flows.evaluate_acquisition import evaluate_acquisition_flow
+        summary = evaluate_acquisition_flow(args.db, args.out, address, config, progress=progress)
+        return {"command": "evaluate acquisition", "scale": summary["scale"],
+                "claims": {k: c["verdict"] for k, c in summary["claims"].items()},
+                "report_json": summary["report_json"], "report_html": summary["report_html"]}
     if args.command == "reconstruct":
         from flows.acquisition import reconstruct_flow
         report = reconstruct_flow(args.measurement, args.model, args.out, address, config, overwrite=args.overwrite,

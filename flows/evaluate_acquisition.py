@@ -22,22 +22,11 @@ def evaluate_stage(db: str, out: str, scheduler_address: str, config: Evaluation
                    progress: bool) -> dict[str, Any]:
     from distributed import Client
 
-    from flows.simulate import _progress_bar
+    from flows.simulate import _progress_bars
     from tasks.evaluate_acquisition import evaluate_acquisition
 
-    bars = []
-
-    def bar(desc: str):
-        b, update = _progress_bar(desc, progress)
-        bars.append(b)
-        return update
-
-    try:
-        with Client(scheduler_address, set_as_default=False) as client:
-            return evaluate_acquisition(db, out, client, config, progress=bar)
-    finally:
-        for b in bars:
-            b.close()
+    with _progress_bars(progress) as bar, Client(scheduler_address, set_as_default=False) as client:
+        return evaluate_acquisition(db, out, client, config, progress=bar)
 
 
 @task(name="acquisition-report", cache_policy=NO_CACHE)

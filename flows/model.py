@@ -19,22 +19,11 @@ def build_stage(db: str, out: str, scheduler_address: str, settings: ModelSettin
                 class_map: dict[str, str] | None, progress: bool) -> dict[str, Any]:
     from distributed import Client
 
-    from flows.simulate import _progress_bar
+    from flows.simulate import _progress_bars
     from tasks.model import build_database
 
-    bars = []
-
-    def bar(desc: str):
-        b, update = _progress_bar(desc, progress)
-        bars.append(b)
-        return update
-
-    try:
-        with Client(scheduler_address, set_as_default=False) as client:
-            return build_database(db, out, client, settings=settings, class_map=class_map, progress=bar)
-    finally:
-        for b in bars:
-            b.close()
+    with _progress_bars(progress) as bar, Client(scheduler_address, set_as_default=False) as client:
+        return build_database(db, out, client, settings=settings, class_map=class_map, progress=bar)
 
 
 @task(name="model-report", cache_policy=NO_CACHE)

@@ -8,7 +8,9 @@ database.
 
 from __future__ import annotations
 
+import contextlib
 import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +32,24 @@ def _progress_bar(desc: str, enabled: bool):
         bar.refresh()
 
     return bar, update
+
+
+@contextlib.contextmanager
+def _progress_bars(enabled: bool) -> Iterator[Callable[[str], Callable[[int, int], None]]]:
+    """``bar(desc)`` opens one more progress bar and returns its ``(done, total)`` update; all close on exit
+    (stages whose tasks report several phases: bases, evaluation, ...)."""
+    bars = []
+
+    def bar(desc: str) -> Callable[[int, int], None]:
+        b, update = _progress_bar(desc, enabled)
+        bars.append(b)
+        return update
+
+    try:
+        yield bar
+    finally:
+        for b in bars:
+            b.close()
 
 
 # Retrying the stage resumes it: finished views are skipped, pending ones re-run.

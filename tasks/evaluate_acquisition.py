@@ -72,6 +72,7 @@ from tasks.model import (
     merge_bases,
     open_model_store,
 )
+from tasks.staging import store_attrs
 from tasks.store import to_json_attr
 
 #: The thesis' sparse pair counts (paper 4 §5.2: n_s of 2,376 (light, turntable) pairs, all 11 cameras).
@@ -234,15 +235,6 @@ def _truth_hash(config: EvaluationConfig, spec: TruthSpec) -> str:
     return hashlib.sha256(f"{config.truth_key()}/{spec.material_id}/{spec.seed}".encode()).hexdigest()[:16]
 
 
-def _store_attrs(path: Path) -> dict[str, Any] | None:
-    if not path.exists():
-        return None
-    try:
-        return dict(zarr.open_group(str(path), mode="r", zarr_format=3).attrs)
-    except Exception:  # noqa: BLE001 - an unreadable store is "not ours"
-        return {}
-
-
 def create_truth_store(path: Path, config: EvaluationConfig, spec: TruthSpec, device: Device) -> zarr.Group:
     """An empty truth store (``btf-texture`` 1.0, rows ``(turntable, camera, light)``), one chunk per view."""
     h, w = device.texture_shape
@@ -306,7 +298,7 @@ def ensure_truth_database(config: EvaluationConfig, db: str | os.PathLike, clien
     for spec in truth_specs(config):
         path = db / f"{spec.material_id}.zarr"
         paths.append(str(path))
-        attrs = _store_attrs(path)
+        attrs = store_attrs(path)
         if attrs is not None:
             if attrs.get("kind") != TRUTH_KIND or attrs.get("ingest_hash") != _truth_hash(config, spec):
                 if attrs.get("kind") == TRUTH_KIND and not attrs.get("complete"):
@@ -676,9 +668,8 @@ class BandTruth:
         return cls(truth, log_luminance(truth).astype(np.float64), np.einsum("ij,ij->i", t, t))
 
 
-def score_band(truth: BandTruth | np.ndarray, recon: np.ndarray) -> BandScores:
+def score_band(ref: BandTruth, recon: np.ndarray) -> BandScores:
     """Sums for relative L2 on log Y and the per-texture errors of mRMSE / mPSNR / mRE."""
-    ref = truth if isinstance(truth, BandTruth) else BandTruth.of(truth)
     t = ref.rgb
     d = (recon.astype(np.float64) - t).reshape(t.shape[0], -1)
     e = log_luminance(recon).astype(np.float64) - ref.log_y

@@ -228,8 +228,10 @@ class RowCorrection:
         Camera RGB -> target RGB, applied after the gains.
     measured_gain : (n_meas, 3) ndarray or None
         Gains of the measured rows when each measures one LED (single-light
-        rows, a BTF store): they are corrected before the solve. None for
-        multiplexed rows: the operators are then per channel on ``G D_c``.
+        rows, a BTF store), or ones for a linear colour matrix without gains:
+        the rows are then corrected before the solve. None for multiplexed
+        rows with gains (or an affine matrix, whose offset does not commute
+        with ``G``): the operators are then per channel on ``G D_c``.
     """
 
     gain: np.ndarray
@@ -237,15 +239,18 @@ class RowCorrection:
     measured_gain: np.ndarray | None
 
     @classmethod
-    def of(cls, led_gain: np.ndarray | None, matrix: np.ndarray | None, G: np.ndarray | sparse.csr_matrix | None, n_lv: int
-           ) -> "RowCorrection | None":
+    def of(cls, led_gain: np.ndarray | None, matrix: np.ndarray | None,
+           G: np.ndarray | sparse.csr_matrix | None, n_lv: int) -> "RowCorrection | None":
         if led_gain is None and matrix is None:
             return None
-        n_leds = 1 if led_gain is None else len(led_gain)
-        gain = np.ones((n_lv, 3)) if led_gain is None else np.tile(np.asarray(led_gain, dtype=np.float64),
-                                                                  (n_lv // n_leds, 1))
-        measured = gain if G is None else gain[single_light_rows(G)] if is_single_light(G) else None
-        return cls(gain, None if matrix is None else np.asarray(matrix, dtype=np.float64), measured)
+        matrix = None if matrix is None else np.asarray(matrix, dtype=np.float64)
+        gain = np.ones((n_lv, 3)) if led_gain is None else \
+            np.tile(np.asarray(led_gain, dtype=np.float64), (n_lv // len(led_gain), 1))
+        if G is None or is_single_light(G):
+            return cls(gain, matrix, gain if G is None else gain[single_light_rows(G)])
+        if led_gain is None and matrix.shape[1] == 3:  # a linear matrix acts across channels, G across rows
+            return cls(gain, matrix, np.ones((G.shape[0], 3)))
+        return cls(gain, matrix, None)
 
     def rows(self, x: np.ndarray, gain: np.ndarray) -> np.ndarray:
         """Rows of ``x`` (rows, ..., 3) divided by their ``gain`` (rows, 3), then the colour matrix."""

@@ -270,3 +270,28 @@ def test_sparse_G_gives_the_dense_results():
     two[2] += single[3]                                       # row 2 now measures two pairs
     with pytest.raises(ValueError, match="G row 2 measures 2 light/view pairs"):
         single_light_rows(sparse.csr_matrix(two))
+
+
+@pytest.mark.parametrize("affine", [False, True])
+def test_colour_matrix_alone_on_a_multiplexed_measurement(tmp_path, affine):
+    """Without LED gains a linear colour matrix is applied before the solve (it commutes with G); an affine
+    one after it, per channel (its offset does not commute with G). Both give the corrected BTF back."""
+    from btfcore.radiometric import apply_colour_matrix
+    from tasks.reconstruct import RowCorrection, build_operators
+
+    rng = np.random.default_rng(7)
+    U, sigma = _orthonormal(rng, N_LV, 5)
+    model = open_model(_model(tmp_path / "model.zarr", {"als": (U, sigma)}))
+    camera = (U @ rng.normal(size=(5, H * W * 3))).reshape(N_LV, H, W, 3)   # what the camera saw, in the span
+    M = np.array([[1.2, -0.1, 0.0], [0.05, 0.9, 0.05], [0.0, -0.2, 1.1]])
+    matrix = np.hstack([M, [[0.01], [0.02], [-0.01]]]) if affine else M
+    B = apply_colour_matrix(camera, matrix)                                    # the corrected BTF
+    pat = multiplexing_patterns(N_LEDS)
+    G = measurement_matrix(N_LV, rows=np.arange(0, N_TURN * N_CAM * pat.shape[0], 2), patterns=pat)
+    measured = (G @ camera.reshape(N_LV, -1)).reshape(len(G), H, W, 3)
+    correction = RowCorrection.of(None, matrix, G, N_LV)
+    assert (correction.measured_gain is None) == affine
+    ops = build_operators(ReconstructSettings(cls="leather", method="direct"), model, G, N_LV, correction=correction)
+    assert set(ops) == ({"r", "g", "b"} if affine else {"rgb"})
+    got = reconstruct_chunk(ops, measured, correction=correction)
+    np.testing.assert_allclose(got, B, atol=2e-4 * np.abs(B).max())
