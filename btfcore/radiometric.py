@@ -17,6 +17,12 @@ spectra").
 * **Colour matrix.** A 3x3 (or 3x4 affine) matrix maps camera RGB to the
   target space (:func:`apply_colour_matrix`); :func:`fit_colour_matrix`
   fits one to colour-checker patches by least squares.
+* **Is it a white standard?** Before its gains calibrate anything, the
+  capture must look like one: flat in brightness and in chromaticity across
+  texels under each LED, and of one chromaticity under an LED from every
+  view (:func:`white_texture_statistics`, :func:`white_standard_statistics`,
+  tolerances :data:`WHITE_TOLERANCES`; docs/reconstruction.md, "Is the white
+  standard a white standard?").
 
 On a multiplexed capture the LED gains act on the single-LED images, so the
 calibration is applied *after* demultiplexing (and the white standard's own
@@ -38,15 +44,53 @@ import numpy as np
 
 __all__ = [
     "MIN_COS_THETA",
+    "WHITE_BORDER_FRACTION",
+    "WHITE_TOLERANCES",
     "apply_colour_matrix",
     "apply_led_calibration",
     "as_colour_matrix",
     "fit_colour_matrix",
     "led_calibration",
+    "white_standard_problems",
+    "white_standard_statistics",
+    "white_texture_statistics",
 ]
 
 #: LEDs closer to the horizon than this cosine (about 89.4 deg) cannot be calibrated on a flat standard.
 MIN_COS_THETA = 0.01
+
+#: Share of each texture side left out at each border before the white-standard statistics: the
+#: rectified border texels mix the sample's edge with its surroundings (on the simulated white they read
+#: 0.6-1.1 of the centre at the grazing camera), which says nothing about the target itself.
+WHITE_BORDER_FRACTION = 1 / 8
+
+#: Largest values of the white-standard statistics of :func:`white_standard_statistics` that pass.
+#: Measured with ``btf simulate`` + ``btf ingest`` (docs/reconstruction.md, "Is the white standard a
+#: white standard?", has the table): the simulated white standard reads at most 0.037 / 0.026 / 0.0014
+#: (tiny dome, 8 to 32 texels, and bonn-dome2), the most uniform material of the six classes at least
+#: 0.19 (leather) / 0.22 (metal) / 0.0044 (metal); each tolerance lies a factor >= 3 from the white
+#: and every material fails at least two of the three, with a factor >= 1.3 on the one nearest.
+#:
+#: * ``brightness_spread`` -- median over LED x view textures of (P95 - P5) / P50 of the texels'
+#:   channel sum: a flat Lambertian target is uniform under every LED (noise, and a few per cent of
+#:   near-field fall-off on a real dome); texture, relief, shadows and highlights are not. 0.15.
+#: * ``chromaticity_spread`` -- the same median of max over channels of (P95 - P5) / P50 of the texels'
+#:   chromaticity (channel / channel sum): under one LED the LED's colour and the camera's sensitivity
+#:   scale every texel alike, so a neutral target has one chromaticity; a coloured, patterned material
+#:   does not. 0.10.
+#: * ``view_chromaticity_deviation`` -- max over LEDs of the median over views of the relative
+#:   deviation of a texture's median chromaticity from that LED's median over views: a Lambertian
+#:   target's colour does not depend on the view, a glossy one's moves toward the highlight's. It
+#:   compares each LED only with itself, so the LEDs' own colours (the gains being measured) cannot
+#:   fail it. 0.01.
+#:
+#: An absolute neutrality test (R = G = B) would be wrong: the camera's raw RGB of a white is not
+#: neutral (the simulated camera's sensitivities are 3 : 5 : 2.5), which is what the gains correct.
+WHITE_TOLERANCES: dict[str, float] = {
+    "brightness_spread": 0.15,
+    "chromaticity_spread": 0.10,
+    "view_chromaticity_deviation": 0.01,
+}
 
 
 def _check_finite(x: np.ndarray, name: str) -> None:
@@ -159,6 +203,117 @@ def led_calibration(
             f"missing or black frame, or an over-subtracted dark frame"
         )
     return gain
+
+
+def white_texture_statistics(
+    white: np.ndarray, border: float = WHITE_BORDER_FRACTION,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-LED flatness and chromaticity of one view of a white-standard capture.
+
+    Parameters
+    ----------
+    white : (n_leds, h, w, C) array_like
+        Linear radiance of the white standard seen from one view, one
+        texture per LED (a view chunk of an ingested BTF store).
+    border : float
+        Share of each side left out at each border, in [0, 0.5).
+
+    Returns
+    -------
+    brightness_spread : (n_leds,) ndarray of float64
+        (P95 - P5) / P50 over texels of the channel sum.
+    chromaticity_spread : (n_leds,) ndarray of float64
+        Max over channels of (P95 - P5) / P50 over texels of the chromaticity
+        (each channel over the channel sum).
+    chromaticity : (n_leds, C) ndarray of float64
+        Median over texels of the chromaticity, normalised to sum 1.
+
+    Notes
+    -----
+    Invalid texels are left out: a non-finite channel (all statistics), a
+    channel sum <= 0 (chromaticity). A texture with no valid texel, or a
+    P50 <= 0, gives ``inf`` (it is not a white standard). One pass over the
+    chunk; no statistic needs another view.
+    """
+    x = np.asarray(white)
+    if x.ndim != 4:
+        raise ValueError(f"white must be (n_leds, h, w, C) for one view, got shape {x.shape}")
+    if not 0 <= border < 0.5:
+        raise ValueError(f"border must lie in [0, 0.5), got {border!r}")
+    n, h, w, C = x.shape
+    bh, bw = int(h * border), int(w * border)
+    x = x[:, bh:h - bh, bw:w - bw].reshape(n, -1, C).astype(np.float64)
+    y = x.sum(axis=-1)                                               # (n, texels), NaN where any channel is
+    with np.errstate(invalid="ignore", divide="ignore"):
+        q = np.where((y > 0)[..., None], x / y[..., None], np.nan)  # eq. chromaticity x_c / sum_c x_c
+    y = np.where(np.isfinite(y), y, np.nan)
+    spread, chroma_spread = np.full(n, np.inf), np.full(n, np.inf)
+    chromaticity = np.full((n, C), np.nan)
+    for led in range(n):                                             # nanpercentile per row: few rows
+        yl = y[led][~np.isnan(y[led])]
+        if yl.size:
+            p5, p50, p95 = np.percentile(yl, [5, 50, 95])
+            if p50 > 0:
+                spread[led] = (p95 - p5) / p50                       # eq. (P95 - P5) / P50
+        ql = q[led][~np.isnan(q[led]).any(axis=-1)]
+        if ql.size:
+            c5, c50, c95 = np.percentile(ql, [5, 50, 95], axis=0)
+            if (c50 > 0).all():
+                chroma_spread[led] = float(np.max((c95 - c5) / c50))
+            chromaticity[led] = c50 / c50.sum()
+    return spread, chroma_spread, chromaticity
+
+
+def white_standard_statistics(
+    brightness_spread: np.ndarray, chromaticity_spread: np.ndarray, chromaticity: np.ndarray,
+) -> dict[str, float]:
+    """The three white-standard statistics of a capture from its per-view ones.
+
+    Parameters
+    ----------
+    brightness_spread, chromaticity_spread : (n_views, n_leds) array_like
+        :func:`white_texture_statistics` of every view.
+    chromaticity : (n_views, n_leds, C) array_like
+        Likewise.
+
+    Returns
+    -------
+    stats : dict
+        ``brightness_spread`` and ``chromaticity_spread`` (median over LED x
+        view textures: a few bad frames do not decide), and
+        ``view_chromaticity_deviation`` (max over LEDs of the median over
+        views of :math:`\max_c |m_{v,l,c} / \operatorname{median}_v m_{v,l,c} - 1|`);
+        compare with :data:`WHITE_TOLERANCES`. ``inf`` where undefined.
+    """
+    s = np.asarray(brightness_spread, dtype=np.float64)
+    cs = np.asarray(chromaticity_spread, dtype=np.float64)
+    m = np.asarray(chromaticity, dtype=np.float64)
+    if s.ndim != 2 or cs.shape != s.shape or m.shape[:2] != s.shape:
+        raise ValueError(f"statistics must be (n_views, n_leds) and (n_views, n_leds, C), got {s.shape}, "
+                         f"{cs.shape} and {m.shape}")
+    ref = np.median(m, axis=0)                                       # (n_leds, C); NaN propagates
+    with np.errstate(invalid="ignore", divide="ignore"):
+        dev = np.abs(m / ref - 1).max(axis=-1)                       # eq. max_c |m_vlc / median_v m_lc - 1|
+    per_led = np.median(dev, axis=0)
+    view_dev = float(per_led.max()) if np.isfinite(per_led).all() else np.inf
+    return {"brightness_spread": float(np.median(s)), "chromaticity_spread": float(np.median(cs)),
+            "view_chromaticity_deviation": view_dev}
+
+
+def white_standard_problems(stats: dict[str, float],
+                            tolerances: dict[str, float] | None = None) -> list[tuple[str, float, float]]:
+    """``(statistic, measured, tolerance)`` of each statistic above its tolerance (``[]``: a white standard).
+
+    Parameters
+    ----------
+    stats : dict
+        From :func:`white_standard_statistics`.
+    tolerances : dict, optional
+        Default :data:`WHITE_TOLERANCES`.
+    """
+    tol = WHITE_TOLERANCES if tolerances is None else tolerances
+    return [(name, float(stats[name]), float(t)) for name, t in tol.items()
+            if not float(stats[name]) <= t]                          # NaN fails too
 
 
 def apply_led_calibration(

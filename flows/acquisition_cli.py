@@ -4,8 +4,7 @@ Wiring only: argument parsing, calls into :mod:`tasks.sample`,
 :mod:`tasks.plan` and :mod:`tasks.render`, JSON summaries on stdout and
 progress on stderr. These commands work on small in-memory arrays (a basis,
 a plan, one rendering), so they run in the calling process and start neither
-a Dask cluster nor Prefect. Exit codes as :mod:`flows.cli`: 0 success, 1 bad
-input (the message names the file, array and index and what to do), 2 usage.
+a Dask cluster nor Prefect. Errors and exit codes are those of :mod:`flows.cli`.
 """
 
 from __future__ import annotations
@@ -17,7 +16,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-EXIT_BAD_INPUT = 1
 
 PLAN_STRATEGIES: tuple[str, ...] = ("full", "sparse", "multiplexed", "sparse-multiplexed", "bootstrap")
 
@@ -127,12 +125,7 @@ def run_acquisition_command(args: argparse.Namespace) -> int | None:
     commands = {"sample": _sample, "plan": _plan, "render": _render}
     if args.command not in commands:
         return None
-    try:
-        summary = commands[args.command](args)
-    except (ValueError, FileNotFoundError, KeyError) as exc:
-        message = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
-        print(f"btf {args.command}: {message}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+    summary = commands[args.command](args)   # errors: one message and exit code by flows.cli.main
     print(json.dumps(summary, indent=2))
     return 0
 

@@ -2,22 +2,30 @@
 
 Every subcommand that computes runs a Prefect flow on the Dask cluster of the
 execution profile (``infra/local.yaml`` unless ``--cluster`` or
-``$BTF_CLUSTER_CONFIG`` names another). Exit codes: 0 success, 1 bad input
-(the message names the file, array and index), 2 usage error, 3 Prefect or the
-cluster could not start.
+``$BTF_CLUSTER_CONFIG`` names another). Everything a command can check is
+checked before Prefect and the cluster start (:func:`_preflight`), and every
+error reaches the user as one message without a traceback (:func:`main`).
+Exit codes: 0 success, 1 a failed run (a full disk, a lost worker: running the
+same command again resumes it), 2 bad input or usage (the message names the
+file, array and index and what to do), 3 Prefect or the cluster could not start.
 """
 
 from __future__ import annotations
 
 import argparse
+import errno
 import json
 import sys
 import time
 from pathlib import Path
 from typing import Sequence
 
-EXIT_BAD_INPUT = 1
+EXIT_FAILED = 1
+EXIT_BAD_INPUT = 2
 EXIT_RUNTIME = 3
+#: Errors that mean bad input or a refused output: the message names the file, array or index and what to do.
+BAD_INPUT = (ValueError, KeyError, FileExistsError, FileNotFoundError, NotADirectoryError, IsADirectoryError,
+             PermissionError)
 
 DESCRIPTION = """\
 btf-pipeline: raw camera-dome captures to bidirectional texture functions.
@@ -31,9 +39,11 @@ with a temporary Prefect server).
 
 
 EPILOG = """\
-exit codes: 0 success; 1 bad input (the message names the file, array and
-index and what to do); 2 usage error; 3 Prefect or the Dask cluster could not
-start. Docs: docs/capture-store.md, docs/devices.md, docs/decisions.md.
+exit codes: 0 success; 1 a failed run (running the same command again resumes
+it); 2 bad input or usage (the message names the file, array and index and
+what to do; nothing was started or written); 3 Prefect or the Dask cluster
+could not start. BTF_DEBUG=1 shows the traceback of an error.
+Docs: docs/capture-store.md, docs/devices.md, docs/decisions.md.
 """
 
 
@@ -327,19 +337,14 @@ def _evaluation_config(args: argparse.Namespace):
 def _evaluate(args: argparse.Namespace) -> int:
     from tasks.ingest import btf_error_against_truth
     from tasks.report import write_json
-    from tasks.store import CaptureStoreError, open_capture_store
+    from tasks.store import open_capture_store
 
     if not args.truth or not args.btf:
-        print("btf evaluate ingest: give --truth SIM and --btf BTF", file=sys.stderr)
-        return 2
-    try:
-        if not open_capture_store(args.truth).has_truth:
-            raise ValueError(f"{args.truth} has no ground truth (truth/ group); give a simulated capture store")
-        metrics = {"evaluate": args.what, "truth": str(args.truth), "btf": str(args.btf),
-                   **btf_error_against_truth(args.btf, args.truth)}
-    except (ValueError, KeyError, FileNotFoundError, CaptureStoreError) as exc:
-        print(f"btf evaluate {args.what}: {exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+        raise ValueError("give --truth SIM and --btf BTF")
+    if not open_capture_store(args.truth).has_truth:
+        raise ValueError(f"{args.truth} has no ground truth (truth/ group); give a simulated capture store")
+    metrics = {"evaluate": args.what, "truth": str(args.truth), "btf": str(args.btf),
+               **btf_error_against_truth(args.btf, args.truth)}
     write_json(args.report, metrics)
     print(json.dumps(metrics, indent=2))
     return 0
@@ -382,8 +387,141 @@ def _validate(args: argparse.Namespace) -> int:
     return EXIT_BAD_INPUT if failed else 0
 
 
+#: What each command reads and writes, by argparse destination, with the name the user typed it under:
+#: :func:`tasks.staging.refuse_inputs_as_outputs` (an input that does not exist, e.g. ``--sampling
+#: ubo2014``, is no path and is ignored).
+INPUT_ARGS = {"capture": "CAPTURE", "btf": "BTF", "measurement": "MEASUREMENT", "folder": "FOLDER", "db": "DB",
+              "model": "--model", "white": "--white", "colour_matrix": "--colour-matrix", "manifest": "--manifest",
+              "calibration": "--calibration", "plan": "--plan", "samples": "--samples", "classes": "--classes",
+              "truth": "--truth", "sampling": "--sampling", "env": "--env"}
+OUTPUT_ARGS = {"out": "--out", "report": "--report"}
+#: Inputs that are folders of inputs: an output may be created inside them (``raws/capture.zarr``).
+FOLDER_ARGS = ("FOLDER", "DB")
+#: Commands that run on the execution profile's Dask cluster and Prefect API.
+CLUSTER_COMMANDS = ("simulate", "demo", "import-raw", "ingest", "resample", "build-db", "reconstruct")
+
+#: OS errors that mean the machine failed the run (exit 1), not that the user gave a bad path (exit 2).
+_RUN_FAILURES = {errno.ENOSPC: "the disk is full: free space or choose another --out",
+                 errno.EDQUOT: "the disk quota is spent: free space or choose another --out",
+                 errno.EIO: "an input/output error of the disk"}
+_PATH_HINTS = {errno.ENOTDIR: "a part of the path is a file, not a folder",
+               errno.EISDIR: "it is a folder where a file is expected",
+               errno.ENOENT: "no such file or folder",
+               errno.EACCES: "permission denied: choose a path you may write, or fix its permissions",
+               errno.EPERM: "operation not permitted: choose another path",
+               errno.EROFS: "read-only file system: choose a path on a writable one"}
+
+
+def _io_args(args: argparse.Namespace) -> tuple[dict[str, str], dict[str, str]]:
+    """``(outputs, inputs)`` of a parsed command line as ``{name the user typed: path}``."""
+    def named(table):
+        found = {}
+        for dest, name in table.items():
+            value = getattr(args, dest, None)
+            if isinstance(value, str) and value:
+                found[name] = value
+        return found
+    inputs = named(INPUT_ARGS)
+    if args.command == "evaluate":
+        inputs = {("--btf" if k == "BTF" else k): v for k, v in inputs.items()}
+    return named(OUTPUT_ARGS), inputs
+
+
+def _preflight(args: argparse.Namespace) -> dict:
+    """Everything a command can refuse before Prefect and a cluster start; what it prepared on the way.
+
+    The one output guard of every command (no output is or holds an input; outputs in writable
+    folders) runs first, then the execution profile is loaded and checked, then each command's own
+    input and output checks. Raises the bad-input errors :func:`main` maps to exit 2.
+    """
+    from tasks.staging import check_output_location, refuse_inputs_as_outputs
+
+    outputs, inputs = _io_args(args)
+    refuse_inputs_as_outputs(outputs, inputs, folders=FOLDER_ARGS)
+    for name, path in outputs.items():
+        check_output_location(path, name)
+    prepared: dict = {"config": None, "device": None}
+    if args.command not in CLUSTER_COMMANDS and not (args.command == "evaluate" and args.what == "acquisition"):
+        return prepared
+    from flows.runtime import load_profile
+
+    prepared["profile"] = load_profile(args.cluster)
+    if args.command == "simulate":
+        from tasks.simulate import check_outputs
+        prepared["config"] = _simulation_config(args)
+        check_outputs(prepared["config"], args.out, args.overwrite)
+    elif args.command == "evaluate":  # acquisition: its scale is checked before a cluster starts
+        prepared["config"] = _evaluation_config(args)
+    elif args.command == "reconstruct":
+        from tasks.radiometric import load_calibration
+        from tasks.reconstruct import ReconstructSettings, check_inputs
+        prepared["config"] = ReconstructSettings(cls=args.cls, basis=args.basis, method=args.method, lam=args.lam,
+                                                 k=args.k)
+        check_inputs(args.measurement, args.model, prepared["config"],
+                     load_calibration(args.white, args.white_albedo, args.colour_matrix))
+    elif args.command == "import-raw":
+        from tasks.ingest_raw import plan_raw_import, raw_import_metadata
+        from tasks.store import check_capture_target
+        prepared["device"] = _calibration(args)
+        prepared["plan"] = plan_raw_import(args.folder, args.manifest)   # every problem listed at once
+        refuse_inputs_as_outputs(outputs, {f"raw file {p.name}": p for p in prepared["plan"].files.values()})
+        meta = raw_import_metadata(prepared["plan"], prepared["device"])
+        if not args.overwrite:
+            check_capture_target(args.out, meta)
+    elif args.command == "resample":
+        from tasks.resample import check_inputs
+        check_inputs(args.btf, args.out, args.sampling, overwrite=args.overwrite)
+    elif args.command == "ingest":
+        from tasks.ingest import check_ingest
+        from tasks.radiometric import load_calibration
+        prepared["calibration"] = load_calibration(args.white, args.white_albedo, args.colour_matrix)
+        check_ingest(args.capture, args.out, overwrite=args.overwrite, calibration=prepared["calibration"])
+    return prepared
+
+
+def _error_message(exc: BaseException) -> tuple[str, int]:
+    """One line (or the lines of a list of problems) for ``exc`` and the exit code it means."""
+    if isinstance(exc, KeyError) and exc.args:
+        return str(exc.args[0]), EXIT_BAD_INPUT
+    if isinstance(exc, OSError) and exc.errno is not None and exc.strerror:
+        where = exc.filename if exc.filename is not None else "?"
+        if exc.errno in _RUN_FAILURES:
+            return f"{where}: {exc.strerror} ({_RUN_FAILURES[exc.errno]})", EXIT_FAILED
+        hint = _PATH_HINTS.get(exc.errno)
+        return f"{where}: {exc.strerror}" + (f" ({hint})" if hint and hint != exc.strerror.lower() else ""), \
+            EXIT_BAD_INPUT
+    if isinstance(exc, BAD_INPUT):
+        return str(exc), EXIT_BAD_INPUT
+    if isinstance(exc, RuntimeError):  # a run that stopped (e.g. views not written): re-running resumes it
+        return str(exc), EXIT_FAILED
+    return (f"failed: {type(exc).__name__}: {exc} (set BTF_DEBUG=1 for the traceback; re-running resumes "
+            "finished work)"), EXIT_FAILED
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    """The ``btf`` command: exit 0 success, 1 a failed run, 2 bad input or usage, 3 no runtime."""
+    import os
+
     args = build_parser().parse_args(argv)
+    try:
+        return _main(args)
+    except KeyboardInterrupt:
+        print(f"btf {args.command}: interrupted; run the same command again to resume", file=sys.stderr)
+        return 130
+    except Exception as exc:  # every error reaches the user as one message, never as a traceback
+        from flows.runtime import RuntimeUnavailable
+        if os.environ.get("BTF_DEBUG"):
+            raise
+        if isinstance(exc, RuntimeUnavailable):
+            message, code = str(exc), EXIT_RUNTIME
+        else:
+            message, code = _error_message(exc)
+        print(f"btf {args.command}: {message}", file=sys.stderr)
+        return code
+
+
+def _main(args: argparse.Namespace) -> int:
+    prepared = _preflight(args)
     from flows.acquisition_cli import run_acquisition_command
     code = run_acquisition_command(args)  # sample, plan, render: in-process, no cluster
     if code is not None:
@@ -397,46 +535,22 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command == "schedule":
         return _schedule(args)
 
-    from flows.runtime import RuntimeUnavailable, runtime
+    from flows.runtime import runtime
 
-    try:
-        config = _simulation_config(args) if args.command == "simulate" else None
-        if args.command == "evaluate":  # acquisition: its scale is checked before a cluster starts
-            config = _evaluation_config(args)
-        if args.command == "reconstruct":  # bad input is named before a cluster starts
-            from tasks.reconstruct import ReconstructSettings, check_inputs
-            config = ReconstructSettings(cls=args.cls, basis=args.basis, method=args.method, lam=args.lam, k=args.k)
-            from tasks.radiometric import load_calibration
-            check_inputs(args.measurement, args.model, config,
-                         load_calibration(args.white, args.white_albedo, args.colour_matrix))
-        device = _calibration(args) if args.command == "import-raw" else None
-        if args.command == "resample":  # bad input is named before a cluster starts
-            from tasks.resample import check_inputs
-            check_inputs(args.btf, args.out, args.sampling, overwrite=args.overwrite)
-        if args.command == "ingest":
-            from tasks.ingest import check_capture
-            check_capture(args.capture)
-    except (ValueError, FileNotFoundError, FileExistsError) as exc:
-        print(f"btf {args.command}: {exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT
     start = time.perf_counter()
-    try:
-        with runtime(args.cluster) as (_profile, _url, client):
-            summary = _run_flow(args, client.scheduler.address, config, device)
-    except RuntimeUnavailable as exc:
-        print(f"btf {args.command}: {exc}", file=sys.stderr)
-        return EXIT_RUNTIME
-    except (ValueError, FileExistsError, FileNotFoundError) as exc:
-        print(f"btf {args.command}: {exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+    with runtime(prepared["profile"]) as (_profile, _url, client):
+        summary = _run_flow(args, client.scheduler.address, prepared)
     print(json.dumps({**summary, "seconds": round(time.perf_counter() - start, 2)}, indent=2))
     return 0
 
 
-def _run_flow(args: argparse.Namespace, address: str, config, device) -> dict:
-    """Run the flow of a computing subcommand on the cluster at ``address``; a JSON summary."""
+def _run_flow(args: argparse.Namespace, address: str, prepared: dict) -> dict:
+    """Run the flow of a computing subcommand on the cluster at ``address`` with what :func:`_preflight`
+    prepared; a JSON summary."""
     from flows.ingest import import_raw_flow, ingest_flow
     from flows.simulate import demo_flow, simulate_flow
+
+    config = prepared["config"]
 
     progress = not args.no_progress
     if args.command == "evaluate":
@@ -464,12 +578,14 @@ def _run_flow(args: argparse.Namespace, address: str, config, device) -> dict:
                 "report_json": str(out / "report.json"), "report_html": str(out / "report.html")}
     if args.command == "ingest":
         return ingest_flow(args.capture, args.out, address, overwrite=args.overwrite, progress=progress,
-                           white=args.white, white_albedo=args.white_albedo, colour_matrix=args.colour_matrix)
+                           white=args.white, white_albedo=args.white_albedo, colour_matrix=args.colour_matrix,
+                           calibration=prepared.get("calibration"))
     if args.command == "resample":
         from flows.resample import resample_flow
         return resample_flow(args.btf, args.out, args.sampling, address, overwrite=args.overwrite, progress=progress)
     if args.command == "import-raw":
-        return import_raw_flow(args.folder, args.manifest, device, args.out, address, overwrite=args.overwrite)
+        return import_raw_flow(args.folder, args.manifest, prepared["device"], args.out, address,
+                               overwrite=args.overwrite, plan=prepared["plan"])
     if args.command == "simulate":
         report = simulate_flow(config, args.out, address, overwrite=args.overwrite, progress=progress)
     else:

@@ -9,15 +9,16 @@ from prefect.cache_policies import NO_CACHE
 
 from btfcore.simulate.devices import Device
 from flows.runtime import RETRY_ONCE
-from tasks.ingest_raw import import_raw, plan_raw_import
+from tasks.ingest_raw import RawImportPlan, import_raw, plan_raw_import
 
 
 @task(name="import-raw-files", **RETRY_ONCE, cache_policy=NO_CACHE)
 def import_raw_stage(folder: str, manifest: str, device: Device, out: str, scheduler_address: str,
-                     overwrite: bool) -> dict[str, Any]:
+                     overwrite: bool, plan: RawImportPlan | None = None) -> dict[str, Any]:
     from distributed import Client
 
-    plan = plan_raw_import(folder, manifest)  # every problem listed before any work
+    if plan is None:
+        plan = plan_raw_import(folder, manifest)  # every problem listed before any work
     with Client(scheduler_address, set_as_default=False) as client:
         store = import_raw(plan, device, out, client, overwrite=overwrite,
                            provenance={"manifest": str(manifest), "folder": str(folder)})
@@ -27,9 +28,10 @@ def import_raw_stage(folder: str, manifest: str, device: Device, out: str, sched
 
 @flow(name="btf-import-raw", log_prints=False)
 def import_raw_flow(folder: str, manifest: str, device: Device, out: str, scheduler_address: str,
-                    overwrite: bool = False) -> dict[str, Any]:
-    """Validate a folder of camera raw files and its manifest, then write a capture store."""
-    return import_raw_stage(folder, manifest, device, out, scheduler_address, overwrite)
+                    overwrite: bool = False, plan: RawImportPlan | None = None) -> dict[str, Any]:
+    """Validate a folder of camera raw files and its manifest (unless ``plan`` is their validated
+    :func:`tasks.ingest_raw.plan_raw_import`, as ``btf import-raw`` passes it), then write a capture store."""
+    return import_raw_stage(folder, manifest, device, out, scheduler_address, overwrite, plan)
 
 
 @task(name="radiometric-calibration", cache_policy=NO_CACHE)
@@ -81,9 +83,10 @@ def ingest_validity_stage(capture: str, out: str) -> dict[str, Any]:
 @flow(name="btf-ingest", log_prints=False)
 def ingest_flow(capture: str, out: str, scheduler_address: str, overwrite: bool = False,
                 progress: bool = True, white: str | None = None, white_albedo: float = 0.99,
-                colour_matrix: str | None = None) -> dict[str, Any]:
+                colour_matrix: str | None = None, calibration: Any = None) -> dict[str, Any]:
     """Capture store -> BTF store (HDR, demosaic, rectify, demultiplex per view; with ``white``
-    and/or ``colour_matrix`` also the radiometric correction of :mod:`tasks.radiometric`).
+    and/or ``colour_matrix`` also the radiometric correction of :mod:`tasks.radiometric`, or with
+    ``calibration`` the one already loaded from them, as ``btf ingest`` does before its cluster starts).
 
     Writes ``<out stem>.report.json`` beside the BTF store (never the folder's
     ``report.json``, which may belong to the simulation that made the capture).
@@ -102,7 +105,8 @@ def ingest_flow(capture: str, out: str, scheduler_address: str, overwrite: bool 
     from tasks.ingest import staging_path
     from tasks.report import write_json
 
-    calibration = calibration_stage(white, white_albedo, colour_matrix)
+    if calibration is None:
+        calibration = calibration_stage(white, white_albedo, colour_matrix)
     stage = ingest_stage(capture, out, scheduler_address, overwrite, progress, calibration)
     store = str(staging_path(out)) if stage["staged"] else out
     validity = ingest_validity_stage(capture, store)

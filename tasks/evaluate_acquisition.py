@@ -62,6 +62,7 @@ from btfcore.reconstruct import (
 from btfcore.sampling import multiplexed_basis, parabolic_map_sampling, random_swap
 from btfcore.simulate.devices import DEVICE_NAMES, Device, get_device
 from btfcore.simulate.materials import MATERIAL_CLASSES
+from tasks.integrity import create_array
 from tasks.model import (
     CHANNELS,
     LINEAR_SVD,
@@ -72,7 +73,7 @@ from tasks.model import (
     merge_bases,
     open_model_store,
 )
-from tasks.staging import store_attrs
+from tasks.staging import begin_store, finish_store, store_attrs
 from tasks.store import to_json_attr
 
 #: The thesis' sparse pair counts (paper 4 §5.2: n_s of 2,376 (light, turntable) pairs, all 11 cameras).
@@ -238,12 +239,12 @@ def _truth_hash(config: EvaluationConfig, spec: TruthSpec) -> str:
 def create_truth_store(path: Path, config: EvaluationConfig, spec: TruthSpec, device: Device) -> zarr.Group:
     """An empty truth store (``btf-texture`` 1.0, rows ``(turntable, camera, light)``), one chunk per view."""
     h, w = device.texture_shape
-    group = zarr.open_group(str(path), mode="w", zarr_format=3)
-    group.create_array("btf", shape=(device.n_lv, h, w, 3), chunks=(device.n_leds, h, w, 3), dtype="float32",
+    group = begin_store(path)
+    create_array(group, "btf", shape=(device.n_lv, h, w, 3), chunks=(device.n_leds, h, w, 3), dtype="float32",
                        fill_value=0.0, compressors=None, dimension_names=["lv", "tex_row", "tex_col", "channel"])
     light, view, lv_index = device.lv_directions()
     for name, data in (("light_dir", light), ("view_dir", view), ("lv_index", lv_index)):
-        group.create_array(name, shape=data.shape, dtype=data.dtype, chunks=data.shape, compressors=None)[...] = data
+        create_array(group, name, shape=data.shape, dtype=data.dtype, chunks=data.shape, compressors=None)[...] = data
     group.attrs.put(to_json_attr({
         "schema": "btf-texture", "schema_version": "1.0", "complete": False, "kind": TRUTH_KIND,
         "units": "radiance per unit irradiance (BTF value incl. cos theta_i), noise-free ground truth",
@@ -252,7 +253,7 @@ def create_truth_store(path: Path, config: EvaluationConfig, spec: TruthSpec, de
         "ingest_hash": _truth_hash(config, spec), "evaluation": config.to_json(),
         "material": {"material_id": spec.material_id, "class": spec.class_name, "seed": spec.seed},
     }))
-    return group
+    return finish_store(path, group)
 
 
 def prepare_truth_material(spec: TruthSpec, config: EvaluationConfig) -> tuple[Any, np.ndarray]:
@@ -857,15 +858,16 @@ def create_reconstruction_store(path: Path, truth_path: str, band_rows: int, str
     """An empty ``btf-texture`` store for one strategy's reconstruction (chunks = bands), directions copied."""
     src = zarr.open_group(truth_path, mode="r", zarr_format=3)
     n_lv, h, w, _ = src["btf"].shape
-    group = zarr.open_group(str(path), mode="w", zarr_format=3)
-    group.create_array("btf", shape=(n_lv, h, w, 3), chunks=(n_lv, band_rows, w, 3), dtype="float32",
+    group = begin_store(path)
+    create_array(group, "btf", shape=(n_lv, h, w, 3), chunks=(n_lv, band_rows, w, 3), dtype="float32",
                        fill_value=0.0, compressors=None, dimension_names=["lv", "tex_row", "tex_col", "channel"])
     for name in ("light_dir", "view_dir"):
         data = src[name][...]
-        group.create_array(name, shape=data.shape, dtype=data.dtype, chunks=data.shape, compressors=None)[...] = data
+        create_array(group, name, shape=data.shape, dtype=data.dtype, chunks=data.shape, compressors=None)[...] = data
     group.attrs.put(to_json_attr({"schema": "btf-texture", "schema_version": "1.0", "complete": False,
                                   "texture_shape": [h, w], "reconstruction_of": truth_path, "strategy": strategy,
                                   "ingest_hash": f"reconstruction-{strategy}"}))
+    finish_store(path, group)
     return str(path)
 
 

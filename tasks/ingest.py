@@ -51,9 +51,10 @@ from zarr.core.buffer import default_buffer_prototype
 
 from btfcore.demultiplex import demultiplex_operator
 from btfcore.ingest import IngestSettings, lv_directions, process_view, view_window
+from tasks.integrity import create_array
 from tasks.radiometric import CALIBRATED_UNITS, Calibration
+from tasks.staging import begin_store, finish_store, staged_target, staging_path, store_attrs
 from tasks.staging import commit_staged as _commit_staged
-from tasks.staging import staged_target, staging_path, store_attrs
 from tasks.store import CaptureStore, open_capture_store, to_json_attr
 
 SCHEMA_NAME = "btf-texture"
@@ -114,6 +115,42 @@ def check_capture(capture_path: str | os.PathLike) -> CaptureStore:
     return capture
 
 
+def check_ingest(capture_path: str | os.PathLike, out_path: str | os.PathLike, *,
+                 settings: IngestSettings = IngestSettings(), overwrite: bool = False,
+                 calibration: Calibration | None = None) -> tuple[CaptureStore, tuple[Path, bool]]:
+    """Everything ``btf ingest`` refuses, checked before any work (the CLI calls it before a cluster starts).
+
+    Returns
+    -------
+    capture : CaptureStore
+        The validated capture store.
+    target : tuple of (Path, bool)
+        The store this ingest writes and whether it is the staging store of a replacement.
+
+    Raises
+    ------
+    tasks.store.CaptureStoreError, ValueError
+        A capture that breaks its schema or cannot be demultiplexed; a calibration that does not fit it.
+    FileExistsError
+        ``out_path`` holds another output and not ``overwrite``.
+    """
+    capture = check_capture(capture_path)
+    from tasks.measurement import measurement_target, needs_measurement_store
+    if needs_measurement_store(capture):
+        if calibration is not None:
+            raise ValueError(
+                f"{capture_path}: a plan capture that is not a full set ({capture.meta.plan.get('strategy')!r} plan) "
+                "is ingested to a measurement store, which is not radiometrically corrected (a multiplexed "
+                "row mixes LEDs whose RGB gains differ); ingest it without --white/--colour-matrix and pass "
+                "them to `btf reconstruct` instead (docs/measurement-store.md)")
+        return capture, measurement_target(capture, out_path, settings, overwrite)
+    if calibration is not None and calibration.led_gain is not None and len(calibration.led_gain) != capture.n_leds:
+        raise ValueError(f"{calibration.info.get('white_standard')}: the white standard has "
+                         f"{len(calibration.led_gain)} LEDs, the capture {capture_path} {capture.n_leds}; "
+                         "calibrate with a white standard captured on the same dome")
+    return capture, _ingest_target(Path(out_path), ingest_hash(capture, settings, calibration), overwrite)
+
+
 #: Bytes of one chunk of the ``btf`` array that :func:`band_rows` aims for.
 CHUNK_BYTES = 4 << 20
 
@@ -154,24 +191,24 @@ def create_btf_store(path: str | os.PathLike, capture: CaptureStore, settings: I
     meta = capture.meta
     h, w = meta.texture_shape
     n_turn, n_cam, n_illum, n_leds = capture.n_turn, capture.n_cam, capture.n_illum, capture.n_leds
-    group = zarr.open_group(str(path), mode="w", zarr_format=3)
-    group.create_array("btf", shape=(n_turn * n_cam * n_leds, h, w, 3), chunks=(n_leds, band_rows(n_leds, h, w), w, 3),
+    group = begin_store(path)
+    create_array(group, "btf", shape=(n_turn * n_cam * n_leds, h, w, 3), chunks=(n_leds, band_rows(n_leds, h, w), w, 3),
                        dtype="float32", fill_value=0.0, compressors=None,
                        dimension_names=["lv", "tex_row", "tex_col", "channel"])
     light_dir, view_dir, lv_index = lv_directions(meta.led_position, meta.camera_R, meta.camera_t,
                                                   meta.turntable_angle)
     for name, data in (("light_dir", light_dir), ("view_dir", view_dir), ("lv_index", lv_index)):
-        group.create_array(name, shape=data.shape, dtype=data.dtype, chunks=data.shape, compressors=None)[...] = data
-    group.create_array("valid_fraction", shape=(n_turn, n_cam, n_illum), chunks=(1, 1, n_illum),
+        create_array(group, name, shape=data.shape, dtype=data.dtype, chunks=data.shape, compressors=None)[...] = data
+    create_array(group, "valid_fraction", shape=(n_turn, n_cam, n_illum), chunks=(1, 1, n_illum),
                        dtype="float64", fill_value=0.0, compressors=None)
-    group.create_array("written", shape=(n_turn, n_cam), chunks=(1, 1), dtype="uint8", fill_value=0,
+    create_array(group, "written", shape=(n_turn, n_cam), chunks=(1, 1), dtype="uint8", fill_value=0,
                        compressors=None)
     units = "DN/s per unit LED drive, before radiometric correction"
     if calibration is not None:
         for name in ("led_gain", "colour_matrix"):
             data = getattr(calibration, name)
             if data is not None:
-                group.create_array(name, shape=data.shape, dtype="float64", chunks=data.shape,
+                create_array(group, name, shape=data.shape, dtype="float64", chunks=data.shape,
                                    compressors=None)[...] = data
         if calibration.led_gain is not None:
             units = CALIBRATED_UNITS
@@ -182,7 +219,7 @@ def create_btf_store(path: str | os.PathLike, capture: CaptureStore, settings: I
         "source": str(capture.path), "ingest_hash": key, "settings": asdict(settings), "complete": False,
         "turntable_cameras_leds": [n_turn, n_cam, n_leds], "material": material_of(capture),
     }))
-    return group
+    return finish_store(path, group)
 
 
 @functools.lru_cache(maxsize=4)
@@ -290,22 +327,12 @@ def ingest_capture(capture_path: str | os.PathLike, out_path: str | os.PathLike,
     from distributed import as_completed
 
     start = time.perf_counter()
-    capture = check_capture(capture_path)
+    capture, (target, staged) = check_ingest(capture_path, out_path, settings=settings, overwrite=overwrite,
+                                             calibration=calibration)
     from tasks.measurement import ingest_measurement, needs_measurement_store
     if needs_measurement_store(capture):
-        if calibration is not None:
-            raise ValueError(
-                f"{capture_path}: a plan capture that is not a full set ({capture.meta.plan.get('strategy')!r} plan) "
-                "is ingested to a measurement store, which is not radiometrically corrected (a multiplexed "
-                "row mixes LEDs whose RGB gains differ); ingest it without --white/--colour-matrix and pass "
-                "them to `btf reconstruct` instead (docs/measurement-store.md)")
         return ingest_measurement(capture_path, out_path, client, settings=settings, overwrite=overwrite,
                                   progress=progress, commit=commit)
-    if calibration is not None and calibration.led_gain is not None and len(calibration.led_gain) != capture.n_leds:
-        raise ValueError(f"{calibration.info.get('white_standard')}: the white standard has "
-                         f"{len(calibration.led_gain)} LEDs, the capture {capture_path} {capture.n_leds}; "
-                         "calibrate with a white standard captured on the same dome")
-    target, staged = _ingest_target(Path(out_path), ingest_hash(capture, settings, calibration), overwrite)
     group = create_btf_store(target, capture, settings, overwrite=staged, calibration=calibration)
     written = group["written"][...]
     pending = [] if group.attrs.get("complete") else [(t, c) for t, c in np.ndindex(written.shape)

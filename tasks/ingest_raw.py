@@ -310,6 +310,29 @@ def import_metadata(plan: RawImportPlan, device: Device, provenance: dict[str, A
     )
 
 
+def raw_import_metadata(plan: RawImportPlan, device: Device, provenance: dict[str, Any] | None = None
+                        ) -> CaptureMetadata:
+    """The capture-store metadata of importing ``plan`` with the dome calibration ``device``, with its
+    ``config_hash`` (a fingerprint of the calibration, exposure times and files: a rerun of the same
+    import resumes, another one is refused).
+
+    Raises
+    ------
+    RawImportError
+        The manifest uses more turntable positions, cameras or LEDs than the calibration has.
+    """
+    import hashlib
+
+    device = calibrated_device(device, plan)
+    fingerprint = json.dumps({"device": device.to_json(), "times": plan.exposure_time.tolist(),
+                              "files": sorted((list(k), str(v)) for k, v in plan.files.items()),
+                              "darks": {str(c): [[t, str(p)] for t, p in v] for c, v in plan.darks.items()}},
+                             sort_keys=True, default=str)
+    provenance = {"config_hash": hashlib.sha256(fingerprint.encode()).hexdigest()[:16], "seed": None,
+                  **dict(provenance or {})}
+    return import_metadata(plan, device, provenance)
+
+
 def import_view(store_path: str, plan: RawImportPlan, t: int, c: int) -> tuple[int, int]:
     """Read one view's brackets from their files and write them (owning whole chunks)."""
     from tasks.store import open_capture_store
@@ -331,16 +354,7 @@ def import_raw(plan: RawImportPlan, device: Device, out: str | os.PathLike, clie
     """
     from tasks.store import open_capture_store
 
-    import hashlib
-
-    device = calibrated_device(device, plan)
-    fingerprint = json.dumps({"device": device.to_json(), "times": plan.exposure_time.tolist(),
-                              "files": sorted((list(k), str(v)) for k, v in plan.files.items()),
-                              "darks": {str(c): [[t, str(p)] for t, p in v] for c, v in plan.darks.items()}},
-                             sort_keys=True, default=str)
-    provenance = {"config_hash": hashlib.sha256(fingerprint.encode()).hexdigest()[:16], "seed": None,
-                  **dict(provenance or {})}
-    meta = import_metadata(plan, device, provenance)
+    meta = raw_import_metadata(plan, device, provenance)
     store = create_capture_store(out, meta, overwrite=overwrite)
     if plan.darks:
         store.write_dark_frames(np.stack([np.stack([read_raw_frame(p) for _, p in plan.darks[c]])

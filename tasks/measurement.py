@@ -46,7 +46,8 @@ import zarr
 from btfcore.demultiplex import demultiplex_operator
 from btfcore.ingest import IngestSettings, lv_directions, process_view, view_window
 from btfcore.plan import CapturePlan
-from tasks.staging import staged_target, staging_path
+from tasks.integrity import create_array
+from tasks.staging import begin_store, finish_store, staged_target, staging_path
 from tasks.store import CaptureStore, bracket_steps, open_capture_store, to_json_attr
 
 __all__ = [
@@ -213,11 +214,11 @@ def create_measurement_store(path: str | os.PathLike, capture: CaptureStore, set
     n_meas, n_leds = len(meas_index), capture.n_leds
     rows = block_rows(meas_index)
     n_blocks = -(-n_meas // rows)
-    group = zarr.open_group(str(path), mode="w", zarr_format=3)
-    group.create_array("measured", shape=(n_meas, h, w, 3), chunks=(rows, band_rows(rows, h, w), w, 3),
+    group = begin_store(path)
+    create_array(group, "measured", shape=(n_meas, h, w, 3), chunks=(rows, band_rows(rows, h, w), w, 3),
                        dtype="float32", fill_value=0.0, compressors=None,
                        dimension_names=["meas", "tex_row", "tex_col", "channel"])
-    g = group.create_array("G", shape=G.shape, chunks=(rows, n_leds), dtype="float32", fill_value=0.0,
+    g = create_array(group, "G", shape=G.shape, chunks=(rows, n_leds), dtype="float32", fill_value=0.0,
                            compressors=None, dimension_names=["meas", "lv"])
     g[...] = G                                            # chunks that are all 0 are not stored
     light_dir, view_dir, lv_index = lv_directions(meta.led_position, meta.camera_R, meta.camera_t,
@@ -226,13 +227,13 @@ def create_measurement_store(path: str | os.PathLike, capture: CaptureStore, set
              "illumination": capture.illumination.astype(np.uint8), "light_dir": light_dir, "view_dir": view_dir,
              "lv_index": lv_index}
     for name, data in small.items():
-        group.create_array(name, shape=data.shape, dtype=data.dtype, chunks=data.shape, compressors=None)[...] = data
-    group.create_array("valid_fraction_rows", shape=(n_meas,), chunks=(rows,), dtype="float64", fill_value=0.0,
+        create_array(group, name, shape=data.shape, dtype=data.dtype, chunks=data.shape, compressors=None)[...] = data
+    create_array(group, "valid_fraction_rows", shape=(n_meas,), chunks=(rows,), dtype="float64", fill_value=0.0,
                        compressors=None)
-    group.create_array("valid_fraction", shape=(capture.n_turn, capture.n_cam, capture.n_illum),
+    create_array(group, "valid_fraction", shape=(capture.n_turn, capture.n_cam, capture.n_illum),
                        chunks=(capture.n_turn, capture.n_cam, capture.n_illum), dtype="float64", fill_value=1.0,
                        compressors=None)
-    group.create_array("written", shape=(n_blocks,), chunks=(1,), dtype="uint8", fill_value=0, compressors=None)
+    create_array(group, "written", shape=(n_blocks,), chunks=(1,), dtype="uint8", fill_value=0, compressors=None)
     single = bool(np.all((G == 0) | (G == 1)) and np.all((G != 0).sum(axis=1) == 1))
     group.attrs.put(to_json_attr({
         "schema": SCHEMA_NAME, "schema_version": SCHEMA_VERSION,
@@ -243,7 +244,7 @@ def create_measurement_store(path: str | os.PathLike, capture: CaptureStore, set
         "plan": plan_summary(meta.plan), "source": str(capture.path), "ingest_hash": key,
         "settings": asdict(settings), "material": material_of(capture), "complete": False,
     }))
-    return group
+    return finish_store(path, group)
 
 
 # --------------------------------------------------------------------------- processing
@@ -327,6 +328,26 @@ def ingest_block(capture_path: str, out_path: str, settings: IngestSettings, blo
     return block
 
 
+def measurement_target(capture: CaptureStore, out_path: str | os.PathLike, settings: IngestSettings,
+                       overwrite: bool) -> tuple[Path, bool]:
+    """The store an ingest of ``capture`` into a measurement store at ``out_path`` writes, and whether it
+    is the staging store of a replacement (:func:`tasks.staging.staged_target`, keyed by
+    :func:`measurement_hash`); ``btf ingest`` asks it before any cluster starts.
+
+    Raises
+    ------
+    FileExistsError
+        ``out_path`` holds another store and not ``overwrite`` (the message names ``--overwrite``).
+    """
+    def refusal(attrs):
+        what = (f"holds another store (schema {attrs.get('schema')!r}, ingest_hash {attrs.get('ingest_hash')!r})"
+                if attrs else "exists and is not a Zarr store")
+        return FileExistsError(f"{out_path} {what}; choose another --out or pass --overwrite (the new store is then "
+                               f"built in {staging_path(out_path)} and replaces it only once complete)")
+
+    return staged_target(Path(out_path), "ingest_hash", measurement_hash(capture, settings), overwrite, refusal)
+
+
 def ingest_measurement(capture_path: str | os.PathLike, out_path: str | os.PathLike, client: Any, *,
                        settings: IngestSettings = IngestSettings(), overwrite: bool = False,
                        progress: Callable[[int, int], None] | None = None, commit: bool = True) -> dict[str, Any]:
@@ -357,15 +378,7 @@ def ingest_measurement(capture_path: str | os.PathLike, out_path: str | os.PathL
 
     start = time.perf_counter()
     capture = open_capture_store(capture_path)
-    key = measurement_hash(capture, settings)
-
-    def refusal(attrs):
-        what = (f"holds another store (schema {attrs.get('schema')!r}, ingest_hash {attrs.get('ingest_hash')!r})"
-                if attrs else "exists and is not a Zarr store")
-        return FileExistsError(f"{out_path} {what}; choose another --out or pass --overwrite (the new store is then "
-                               f"built in {staging_path(out_path)} and replaces it only once complete)")
-
-    target, staged = staged_target(Path(out_path), "ingest_hash", key, overwrite, refusal)
+    target, staged = measurement_target(capture, out_path, settings, overwrite)
     group = create_measurement_store(target, capture, settings, overwrite=staged)
     written = group["written"][...]
     pending = [] if group.attrs.get("complete") else np.flatnonzero(written == 0).tolist()
@@ -429,16 +442,16 @@ def write_measurement(path: str | os.PathLike, measured: np.ndarray, G: np.ndarr
 
     n_meas, h, w, _ = measured.shape
     rows = int(rows_per_block or min(n_meas, n_leds))
-    group = zarr.open_group(str(path), mode="w", zarr_format=3)
-    group.create_array("measured", shape=measured.shape, chunks=(rows, band_rows(rows, h, w), w, 3), dtype="float32",
+    group = begin_store(path)
+    create_array(group, "measured", shape=measured.shape, chunks=(rows, band_rows(rows, h, w), w, 3), dtype="float32",
                        fill_value=0.0, compressors=None,
                        dimension_names=["meas", "tex_row", "tex_col", "channel"])[...] = measured
-    group.create_array("G", shape=G.shape, chunks=(rows, n_leds), dtype="float32", fill_value=0.0, compressors=None,
+    create_array(group, "G", shape=G.shape, chunks=(rows, n_leds), dtype="float32", fill_value=0.0, compressors=None,
                        dimension_names=["meas", "lv"])[...] = G
     lv_index = np.indices((n_turn, n_cam, n_leds)).reshape(3, -1).T.astype(np.int32)
     for name, data in (("light_dir", np.asarray(light_dir, np.float64)), ("view_dir", np.asarray(view_dir, np.float64)),
                        ("lv_index", lv_index)):
-        group.create_array(name, shape=data.shape, dtype=data.dtype, chunks=data.shape, compressors=None)[...] = data
+        create_array(group, name, shape=data.shape, dtype=data.dtype, chunks=data.shape, compressors=None)[...] = data
     key = hashlib.sha256(measured.tobytes() + G.tobytes()).hexdigest()[:16]
     single = bool(np.all((G == 0) | (G == 1)) and np.all((G != 0).sum(axis=1) == 1))
     group.attrs.put(to_json_attr({
@@ -447,7 +460,7 @@ def write_measurement(path: str | os.PathLike, measured: np.ndarray, G: np.ndarr
         "turntable_cameras_leds": [n_turn, n_cam, n_leds], "n_meas": n_meas, "rows_per_block": rows,
         "single_light": single, "plan": None, "source": source, "ingest_hash": key, "settings": None,
         "material": material, "complete": True}))
-    return group
+    return finish_store(path, group)
 
 
 # --------------------------------------------------------------------------- reading

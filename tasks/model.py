@@ -48,6 +48,8 @@ from btfcore.als import als_basis
 from btfcore.colour import to_log_yuv
 from btfcore.eigenspace_merging import merge_eigenspaces
 from btfcore.truncated_svd import truncated_svd
+from tasks.integrity import create_array
+from tasks.staging import begin_store, finish_store
 from tasks.store import to_json_attr
 
 SCHEMA_NAME = "btf-model"
@@ -275,20 +277,20 @@ def open_model_store(path: str | os.PathLike, materials: Sequence[Material]) -> 
             raise FileExistsError(f"{path} holds a model store of another light/view sampling (rows_id "
                                   f"{group.attrs.get('rows_id')!r}, this database {first.rows_id!r}); choose another --out")
         return group
-    group = zarr.open_group(str(path), mode="w", zarr_format=3)
+    group = begin_store(path)
     for name in ("light_dir", "view_dir"):
         data = src[name][...]
-        group.create_array(name, shape=data.shape, dtype=data.dtype, chunks=data.shape, compressors=None)[...] = data
+        create_array(group, name, shape=data.shape, dtype=data.dtype, chunks=data.shape, compressors=None)[...] = data
     group.attrs.put(to_json_attr({"schema": SCHEMA_NAME, "schema_version": SCHEMA_VERSION, "rows_id": first.rows_id,
                                   "n_lv": first.n_lv, "bases": list(BASES)}))
-    return group
+    return finish_store(path, group)
 
 
 def write_basis(group: zarr.Group, where: str, model: TruncatedSVD, key: str, **attrs: Any) -> None:
     """Write ``U`` and ``sigma`` under ``where`` and then its ``key`` (the resume marker)."""
     sub = group.require_group(where)
     for name, data in (("U", model.U), ("sigma", model.sigma)):
-        sub.create_array(name, shape=data.shape, dtype="float64", chunks=data.shape, compressors=None,
+        create_array(sub, name, shape=data.shape, dtype="float64", chunks=data.shape, compressors=None,
                          overwrite=True)[...] = data
     sub.attrs.put(to_json_attr({"method": model.method, "settings": model.settings, "norm_sq": model.norm_sq,
                                 "iterations": model.iterations, "converged": bool(model.converged),

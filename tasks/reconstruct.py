@@ -68,7 +68,9 @@ from btfcore.reconstruct import (
     solve_operator,
     texture_variance,
 )
-from tasks.staging import commit_staged, finish_interrupted_commit, staging_path, store_attrs
+from tasks.integrity import create_array
+from tasks.staging import (begin_store, commit_staged, finish_interrupted_commit, finish_store, staging_path,
+                           store_attrs)
 from tasks.store import to_json_attr
 
 __all__ = ["RECONSTRUCT_BASES", "ReconstructSettings", "build_operators", "check_inputs", "open_model",
@@ -466,15 +468,15 @@ def _create_output(path: Path, data: zarr.Group, key: str, attrs: dict[str, Any]
     h, w = data.attrs["texture_shape"]
     n_turn, n_cam, n_leds = data.attrs["turntable_cameras_leds"]
     n_lv = n_turn * n_cam * n_leds
-    group = zarr.open_group(str(path), mode="w", zarr_format=3)
-    group.create_array("btf", shape=(n_lv, h, w, 3), chunks=(n_leds, band, w, 3), dtype="float32", fill_value=0.0,
+    group = begin_store(path)
+    create_array(group, "btf", shape=(n_lv, h, w, 3), chunks=(n_leds, band, w, 3), dtype="float32", fill_value=0.0,
                        compressors=None, dimension_names=["lv", "tex_row", "tex_col", "channel"])
     for name in ("light_dir", "view_dir", "lv_index"):
         v = data[name][...]
-        group.create_array(name, shape=v.shape, dtype=v.dtype, chunks=v.shape, compressors=None)[...] = v
-    group.create_array("written", shape=(n_bands,), chunks=(1,), dtype="uint8", fill_value=0, compressors=None)
+        create_array(group, name, shape=v.shape, dtype=v.dtype, chunks=v.shape, compressors=None)[...] = v
+    create_array(group, "written", shape=(n_bands,), chunks=(1,), dtype="uint8", fill_value=0, compressors=None)
     group.attrs.put(to_json_attr({**attrs, "reconstruct_hash": key, "ingest_hash": key, "complete": False}))
-    return group
+    return finish_store(path, group)
 
 
 def reconstruct_store(in_path: str | os.PathLike, model_path: str | os.PathLike, out_path: str | os.PathLike,

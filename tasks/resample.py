@@ -41,7 +41,9 @@ from btfcore.resample import (
     unique_directions,
 )
 from tasks.ingest import SCHEMA_NAME, SCHEMA_VERSION
-from tasks.staging import commit_staged, staged_target, staging_path, store_attrs, trash_path
+from tasks.integrity import create_array
+from tasks.staging import (begin_store, commit_staged, finish_store, staged_target, staging_path, store_attrs,
+                           trash_path)
 from tasks.store import to_json_attr
 
 #: The built-in target sampling.
@@ -271,7 +273,7 @@ def _resample_target(out: Path, key: str, overwrite: bool) -> tuple[Path, bool]:
 
 
 def _whole(group: zarr.Group, name: str, data: np.ndarray) -> None:
-    group.create_array(name, shape=data.shape, dtype=data.dtype, chunks=data.shape, compressors=None)[...] = data
+    create_array(group, name, shape=data.shape, dtype=data.dtype, chunks=data.shape, compressors=None)[...] = data
 
 
 def create_resampled_store(path: str | os.PathLike, source_path: str | os.PathLike, source: zarr.Group,
@@ -304,14 +306,14 @@ def create_resampled_store(path: str | os.PathLike, source_path: str | os.PathLi
     h, w = src_btf.shape[1:3]
     light_dir, view_dir, lv_index = sampling.rows()
     outside = outside_view | outside_light
-    group = zarr.open_group(str(path), mode="w", zarr_format=3)
-    group.create_array("btf", shape=(n_v * n_l, h, w, 3), chunks=(n_l, h, w, 3), dtype="float32",
+    group = begin_store(path)
+    create_array(group, "btf", shape=(n_v * n_l, h, w, 3), chunks=(n_l, h, w, 3), dtype="float32",
                        fill_value=0.0, compressors=None, dimension_names=["lv", "tex_row", "tex_col", "channel"])
     for name, data in (("light_dir", light_dir), ("view_dir", view_dir), ("lv_index", lv_index),
                        ("target_light_dirs", sampling.light_dirs), ("target_view_dirs", sampling.view_dirs),
                        ("outside_hull", outside)):
         _whole(group, name, data)
-    group.create_array("written", shape=(n_v,), chunks=(1,), dtype="uint8", fill_value=0, compressors=None)
+    create_array(group, "written", shape=(n_v,), chunks=(1,), dtype="uint8", fill_value=0, compressors=None)
     attrs = dict(source.attrs)
     resampled_from = {"path": str(Path(source_path).resolve()), "ingest_hash": attrs.get("ingest_hash")}
     if attrs.get("resample_hash"):
@@ -327,7 +329,7 @@ def create_resampled_store(path: str | os.PathLike, source_path: str | os.PathLi
                          "light": int(outside_light.sum())},
         "complete": False,
     }))
-    return group
+    return finish_store(path, group)
 
 
 # --------------------------------------------------------------------------- work

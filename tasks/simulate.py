@@ -32,6 +32,7 @@ from btfcore.simulate.sensor import choose_bracket, dark_current_map, dark_frame
 from tasks.store import (
     CaptureMetadata,
     CaptureStore,
+    check_capture_target,
     create_capture_store,
     open_capture_store,
 )
@@ -377,6 +378,30 @@ def check_disk_space(config: SimulationConfig, out_dir: Path) -> None:
         )
 
 
+def check_outputs(config: SimulationConfig, out_dir: str | Path, overwrite: bool = False) -> None:
+    """Everything ``btf simulate`` refuses about its output, checked before any work (the CLI calls it
+    before a cluster starts): the disk space of a new database, and every store at ``out_dir`` that
+    is neither this run's (finished or resumable) nor to be replaced with ``overwrite``.
+
+    Raises
+    ------
+    ValueError
+        Not enough free space.
+    FileExistsError
+        A store of another configuration, or something that is no capture store (names ``--overwrite``).
+    """
+    out_dir = Path(out_dir)
+    if not (out_dir / "database.json").exists():
+        check_disk_space(config, out_dir)
+    if overwrite:
+        return
+    device = config.build_device()
+    for spec in material_plan(config):
+        path = out_dir / f"{spec.material_id}.zarr"
+        if path.exists() and _finished_store(path, config, spec) is None:
+            check_capture_target(path, capture_metadata(config, spec, device), with_truth=True)
+
+
 def simulate_database(config: SimulationConfig, out_dir: str | Path, client: Any, *,
                       overwrite: bool = False,
                       progress: Callable[[int, int], None] | None = None) -> SimulationResult:
@@ -396,8 +421,7 @@ def simulate_database(config: SimulationConfig, out_dir: str | Path, client: Any
 
     start = time.perf_counter()
     out_dir = Path(out_dir)
-    if not (out_dir / "database.json").exists():
-        check_disk_space(config, out_dir)
+    check_outputs(config, out_dir, overwrite)
     out_dir.mkdir(parents=True, exist_ok=True)
     device = config.build_device()
     futures, stores, skipped, records = [], [], 0, []

@@ -115,3 +115,123 @@ def commit_staged(out: str | os.PathLike, command: str) -> Path:
     os.rename(staging, out)
     shutil.rmtree(trash, ignore_errors=True)
     return out
+
+
+# --------------------------------------------------------------------------
+# Outputs: never an input, in a place that can be written, never half-made
+# --------------------------------------------------------------------------
+
+
+def _overlap(out: Path, inp: Path) -> str | None:
+    """How ``out`` would touch ``inp`` (both resolved), or ``None``."""
+    if out == inp:
+        return "is"
+    if out in inp.parents:
+        return "contains"
+    if inp in out.parents:
+        return "is inside"
+    return None
+
+
+def refuse_inputs_as_outputs(outputs: dict[str, str | os.PathLike | None],
+                             inputs: dict[str, str | os.PathLike | None], *,
+                             folders: tuple[str, ...] = ()) -> None:
+    """The one guard of every command: no output is, contains or lies inside one of its inputs.
+
+    Parameters
+    ----------
+    outputs, inputs : dict
+        ``{option name (e.g. "--out"): path}``; ``None`` values are ignored, and so are
+        inputs that do not exist (a preset name such as ``ubo2014`` is no path).
+    folders : tuple of str
+        Names of inputs that are folders of inputs (the raw files of ``btf import-raw``,
+        the database of ``btf build-db``): a new output may lie inside such a folder
+        (``raws/capture.zarr``), but not be or contain it; the files it holds that the
+        run reads are passed as inputs of their own.
+
+    Raises
+    ------
+    FileExistsError
+        Naming both options and paths, before anything is written: with or without
+        ``--overwrite``, a run never replaces, deletes or writes into what it reads.
+    """
+    ins = {name: Path(p).resolve() for name, p in inputs.items() if p is not None and Path(p).exists()}
+    for out_name, out in outputs.items():
+        if out is None:
+            continue
+        out_path = Path(out).resolve()
+        for in_name, inp in ins.items():
+            how = _overlap(out_path, inp)
+            if how and not (how == "is inside" and in_name in folders):
+                raise FileExistsError(
+                    f"{out_name} {out} {how} the input {in_name} {inp}; a run never writes into what it reads "
+                    f"(not even with --overwrite): choose an {out_name} outside it")
+
+
+def check_output_location(path: str | os.PathLike, option: str = "--out") -> None:
+    """Refuse an output that cannot be created, before any run starts.
+
+    The nearest existing folder above ``path`` must be a writable directory: a regular
+    file on the way (``out.zarr/x`` under a file ``out.zarr``), a read-only or
+    permission-denied folder are named with the option and the path.
+
+    Raises
+    ------
+    NotADirectoryError, PermissionError
+        One line naming ``option``, the path and what to do.
+    """
+    path = Path(path)
+    if _is_url(path):
+        return
+    parent = path.absolute().parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise NotADirectoryError(f"{option} {path}: {parent} is a file, not a folder; choose an {option} whose "
+                                 "folders are folders")
+    if path.exists() and not path.is_dir() and not os.access(path, os.W_OK):
+        raise PermissionError(f"{option} {path}: the file is not writable; choose another {option}")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise PermissionError(f"{option} {path}: the folder {parent} is not writable (permissions or a read-only "
+                              f"file system); choose another {option}")
+
+
+def _is_url(path: str | os.PathLike) -> bool:
+    return "://" in os.fspath(path)
+
+
+def creating_path(path: str | os.PathLike) -> Path:
+    """Where :func:`begin_store` builds the store ``X.zarr``: ``.X.zarr.creating`` beside it (hidden, and no
+    ``.zarr`` name, so that no folder listing of a database takes it for a store)."""
+    path = Path(path)
+    return path.with_name(f".{path.name}.creating")
+
+
+def begin_store(path: str | os.PathLike) -> zarr.Group:
+    """An empty Zarr v3 group in which a new store for ``path`` is built (its arrays and attributes).
+
+    Every store kind is created this way: the skeleton is built at :func:`creating_path`
+    and :func:`finish_store` renames it to ``path``. A run killed while creating leaves
+    only the hidden ``.X.zarr.creating`` folder, which the next run deletes and builds
+    again, so ``path`` itself is never a half-made store (a rerun resumes without
+    ``--overwrite``). A URL (fsspec) store is created in place.
+    """
+    if _is_url(path):
+        return zarr.open_group(os.fspath(path), mode="w", zarr_format=3)
+    building = creating_path(path)
+    shutil.rmtree(building, ignore_errors=True)      # left by a run killed while creating
+    return zarr.open_group(str(building), mode="w", zarr_format=3)
+
+
+def finish_store(path: str | os.PathLike, group: zarr.Group) -> zarr.Group:
+    """Put the store built by :func:`begin_store` in place at ``path`` (replacing what the
+    caller decided to replace there) and return it opened ``r+``."""
+    if _is_url(path):
+        return group
+    path = Path(path)
+    if path.is_dir():
+        shutil.rmtree(path)
+    elif path.exists():
+        path.unlink()
+    os.rename(creating_path(path), path)
+    return zarr.open_group(str(path), mode="r+", zarr_format=3)

@@ -35,6 +35,8 @@ import numpy as np
 import zarr
 
 import btfcore
+from tasks.integrity import CorruptChunkError, chunk_files_exist, create_array, missing_problem, rerun_hint
+from tasks.staging import begin_store, finish_store
 
 __all__ = [
     "BAYER_PATTERNS",
@@ -688,7 +690,11 @@ def _check_content(
     for name in markers + [n for n in infos if n not in markers]:
         info = infos[name]
         if usable.get(name) and info.load is not None:
-            data[name] = np.asarray(info.load())
+            try:
+                data[name] = np.asarray(info.load())
+            except CorruptChunkError as e:             # a checksum mismatch / truncated chunk: named, not raised
+                problems.append(Problem(name, f"chunk {e.chunk}", "a chunk that reads back as written",
+                                        e.problem, e.hint))
     P = problems.append
     calib = "check the device calibration that produced it"
 
@@ -1005,7 +1011,7 @@ def _validate_group(
             problems.append(Problem(
                 name, None, f"array {name!r}", "nothing",
                 "the store is incomplete or was not written by create_capture_store; "
-                "recreate it (pass overwrite=True)"))
+                "recreate it (--overwrite; overwrite=True from Python)"))
         elif not isinstance(node, zarr.Array):
             problems.append(Problem(name, None, "an array", "a group", "recreate the store"))
         else:
@@ -1055,9 +1061,39 @@ def _validate_group(
         sizes.seed("tex2_col", 2 * ts[1], "2 * attrs['texture_shape'][1]")
     usable = _check_shapes(infos, sizes, problems)
     data = _check_content(infos, usable, sizes, attrs, problems, planned=planned)
+    _check_chunk_files(group, data, attrs, problems)
     _check_completeness(data, attrs, sizes, problems,
                         require_complete=require_complete, check_flag=check_flag, planned=planned)
     return problems
+
+
+#: Frame arrays whose chunks a resume marker says were written: ``array -> (marker, marker axes)``.
+_MARKED = {"raw": ("written", "(t, c, i)"), "dark_frames": ("dark_written", "(c)")}
+
+
+def _check_chunk_files(group: zarr.Group, data: Mapping[str, np.ndarray], attrs: Mapping[str, Any],
+                       problems: list[Problem]) -> None:
+    """A frame chunk whose marker says written must have its file: Zarr reads a missing chunk as zeros,
+    which ingest would take for an unusable bracket. One ``stat`` per written bracket (local stores only;
+    ``btf validate --deep`` lists the chunks of any store). With ``black_level`` 0 an all-zero bracket is
+    possible and Zarr does not store it, so nothing is checked then."""
+    black = attrs.get("black_level")
+    if not isinstance(black, (int, float)) or black <= 0 or _is_url(getattr(group.store, "root", "://")):
+        return
+    for name, (marker_name, axes) in _MARKED.items():
+        marker, arr = data.get(marker_name), group.get(name)
+        if marker is None or not isinstance(arr, zarr.Array) or tuple(arr.cdata_shape[:marker.ndim]) != marker.shape:
+            continue
+        written = np.argwhere(marker == 1)
+        chunks = [tuple(int(i) for i in w) + (0,) * (arr.ndim - marker.ndim) for w in written]
+        missing = [c for c, ok in zip(chunks, chunk_files_exist(arr, chunks)) if not ok]
+        if missing:
+            problems.append(Problem(
+                name, f"chunk {_listing(np.array(missing))}",
+                f"a chunk file for each bracket that {marker_name}{axes} = 1 marks as written",
+                f"chunk file missing for {len(missing)} chunk(s) (Zarr would read them as zeros)",
+                "the store was damaged after writing; write the capture again (`btf simulate --overwrite` / "
+                "`btf import-raw --overwrite`) or restore it from a backup"))
 
 
 def _is_url(path: Any) -> bool:
@@ -1242,16 +1278,32 @@ def create_capture_store(
         existing = _existing_store(path, meta, attrs, with_truth)
         if existing is not None:
             return existing
-    group = zarr.open_group(_store_arg(path), mode="w", zarr_format=3)
+    group = begin_store(path)
     _create_arrays(group, meta, arrays, with_truth)
     if meta.plan_shot is not None:
         shot = np.asarray(meta.plan_shot, dtype=np.int32)
         pg = group.create_group("plan")
-        pg.create_array("shot", shape=shot.shape, dtype="int32", chunks=shot.shape, fill_value=-1,
+        create_array(pg, "shot", shape=shot.shape, dtype="int32", chunks=shot.shape, fill_value=-1,
                         dimension_names=["turntable", "camera", "illumination"], compressors=None)[...] = shot
         pg.attrs.put(to_json_attr({"plan": meta.plan}))
     group.attrs.put(attrs)
-    return CaptureStore(path, "r+", group=group)
+    return CaptureStore(path, "r+", group=finish_store(path, group))
+
+
+def check_capture_target(path: str | os.PathLike, meta: CaptureMetadata, *, with_truth: bool = False) -> None:
+    """Raise what :func:`create_capture_store` (without ``overwrite``) would refuse at ``path``, writing nothing.
+
+    Raises
+    ------
+    CaptureStoreError
+        ``meta`` violates the schema.
+    FileExistsError
+        ``path`` holds a complete store, one of another config, or something else.
+    """
+    problems, attrs, _ = _meta_problems(meta)
+    if problems:
+        raise CaptureStoreError(path, problems)
+    _existing_store(path, meta, attrs, with_truth)
 
 
 def _existing_store(path, meta: CaptureMetadata, attrs: dict, with_truth: bool) -> CaptureStore | None:
@@ -1270,20 +1322,25 @@ def _existing_store(path, meta: CaptureMetadata, attrs: dict, with_truth: bool) 
         if not os.path.isfile(os.path.join(p, "zarr.json")):
             raise FileExistsError(
                 f"{p!r} exists and is not a capture store; choose another path or pass "
-                "overwrite=True to delete it")
+                "--overwrite (overwrite=True) to delete it")
         try:
-            old = dict(zarr.open_group(p, mode="r", zarr_format=3).attrs)
+            found = zarr.open_group(p, mode="r", zarr_format=3)
+            old = dict(found.attrs)
         except Exception as e:  # noqa: BLE001
             raise FileExistsError(
                 f"{p!r} exists and is not a readable Zarr v3 group ({e}); choose another path "
-                "or pass overwrite=True to delete it") from e
+                "or pass --overwrite (overwrite=True) to delete it") from e
+        if not old and set(found.keys()) <= {*_ARRAYS, "truth", "plan"}:
+            # a skeleton whose creation was killed before its attributes (stores made before
+            # tasks.staging.begin_store): nothing was captured into it yet, so it is built again
+            return None
     if old.get("schema") != SCHEMA_NAME:
         raise FileExistsError(
             f"{path!s} holds a store of schema {old.get('schema')!r}, not {SCHEMA_NAME!r}; "
-            "choose another path or pass overwrite=True to delete it")
+            "choose another path or pass --overwrite (overwrite=True) to delete it")
     if old.get("complete") is True:
         raise FileExistsError(
-            f"{path!s} already holds a complete capture store; pass overwrite=True to replace "
+            f"{path!s} already holds a complete capture store; pass --overwrite (overwrite=True) to replace "
             "it or choose another path")
     old_hash = (old.get("provenance") or {}).get("config_hash")
     new_hash = attrs["provenance"]["config_hash"]
@@ -1291,7 +1348,7 @@ def _existing_store(path, meta: CaptureMetadata, attrs: dict, with_truth: bool) 
         raise FileExistsError(
             f"{path!s} holds an unfinished capture store of another configuration "
             f"(config_hash {old_hash!r}, this run has {new_hash!r}); it cannot be resumed with "
-            "this config. Re-run with the original config to finish it, pass overwrite=True "
+            "this config. Re-run with the original config to finish it, pass --overwrite (overwrite=True) "
             "to start over, or choose another path")
     store = open_capture_store(path, "r+", require_complete=False)
     diff = _meta_differences(store.meta, meta)
@@ -1299,11 +1356,11 @@ def _existing_store(path, meta: CaptureMetadata, attrs: dict, with_truth: bool) 
         raise FileExistsError(
             f"{path!s} holds an unfinished store with the same config_hash {new_hash!r} but "
             f"different metadata ({'; '.join(diff)}); the config hash does not cover everything "
-            "that changed. Pass overwrite=True to start over or choose another path")
+            "that changed. Pass --overwrite (overwrite=True) to start over or choose another path")
     if with_truth != store.has_truth:
         raise FileExistsError(
             f"{path!s} holds an unfinished store {'with' if store.has_truth else 'without'} "
-            f"ground truth but with_truth={with_truth}; pass overwrite=True to start over")
+            f"ground truth but with_truth={with_truth}; pass --overwrite (overwrite=True) to start over")
     return store
 
 
@@ -1345,7 +1402,7 @@ def _create_arrays(group: zarr.Group, meta: CaptureMetadata, arrays: Mapping[str
     def make(g: zarr.Group, name: str, spec, data: np.ndarray | None = None):
         dtype, axes, rule = spec
         shape = tuple(sizes[k] for _, k in axes)
-        arr = g.create_array(
+        arr = create_array(g,
             name.split("/")[-1], shape=shape, dtype=dtype,
             chunks=_expected_chunks(rule, shape, sizes), fill_value=0,
             dimension_names=[d for d, _ in axes], compressors=None,
@@ -1652,7 +1709,18 @@ class CaptureStore:
         frames : (n_exp, rows, cols) ndarray of uint16
         exposure_time : (n_exp,) ndarray of float64
             Seconds, increasing.
+
+        Raises
+        ------
+        CorruptChunkError
+            The bracket's chunk fails its checksum or is truncated, or its file is missing although
+            ``written[t, c, i]`` marks it written (naming the store, array and chunk).
         """
+        if int(self.group["written"][t, c, i]) == 1 and int(self.meta.black_level or 0) > 0:
+            chunk = (int(t), int(c), int(i), 0, 0, 0)
+            if not chunk_files_exist(self.raw, [chunk])[0]:
+                raise missing_problem(self.path, "raw", chunk, "written", chunk[:3],
+                                      rerun_hint(self.attrs)).error()
         return self.raw[t, c, i], self.group["exposure_time"][t, c, i]
 
     def pending_views(self) -> list[tuple[int, int]]:
@@ -1849,7 +1917,7 @@ class CaptureStore:
         if data.dtype.kind == "f" and not np.isfinite(data).all():
             raise ValueError(f"truth map {name!r} holds NaN/Inf")
         key = name if name.startswith("maps_") else f"maps_{name}"
-        arr = self.truth.create_array(
+        arr = create_array(self.truth,
             key, shape=data.shape, dtype=data.dtype, chunks=tuple(max(1, s) for s in data.shape),
             fill_value=0, compressors=None, overwrite=True,
             dimension_names=["tex_row", "tex_col", "channel"][: data.ndim] if data.ndim <= 3 else None,

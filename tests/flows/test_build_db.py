@@ -120,7 +120,7 @@ def test_cli_builds_the_report(run_btf, database, tmp_path):
     assert "Thesis Table 1" in html and "model_spectra.png" in html
     assert (tmp_path / "model" / "report_files" / "model_000-leather_abrdf.png").exists()
     code, _, stderr = run_btf("build-db", db, "--out", tmp_path / "m2", "--k-log-y", "5000")
-    assert code == 1 and "k = 5000" in stderr and "exceeds what the data allows" in stderr
+    assert code == 2 and "k = 5000" in stderr and "exceeds what the data allows" in stderr
 
 
 def test_nan_in_a_btf_names_the_store_and_the_index(database, tmp_path, dask_client):

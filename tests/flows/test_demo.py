@@ -37,10 +37,10 @@ def test_demo_simulates_calibrates_ingests_and_reports(run_btf, tmp_path):
 def test_ingest_white_standard_errors_name_the_store(run_btf, tiny_database, tmp_path):
     capture = sorted(tiny_database[1].glob("*.zarr"))[0]
     code, _, stderr = run_btf("ingest", capture, "--out", tmp_path / "b.zarr", "--white", tmp_path / "none.zarr")
-    assert code == 1
+    assert code == 2
     assert "none.zarr" in stderr and "ingest the white-standard capture first" in stderr
     assert not (tmp_path / "b.zarr").exists()
     matrix = tmp_path / "m.json"
     matrix.write_text('{"matrix": [[1, 0, 0], [0, NaN, 0], [0, 0, 1]]}')
     code, _, stderr = run_btf("ingest", capture, "--out", tmp_path / "b.zarr", "--colour-matrix", matrix)
-    assert code == 1 and "m.json" in stderr and "matrix[1, 1]" in stderr, stderr
+    assert code == 2 and "m.json" in stderr and "matrix[1, 1]" in stderr, stderr

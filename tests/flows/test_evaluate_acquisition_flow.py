@@ -42,7 +42,7 @@ def test_flow_writes_every_strategy_and_claim(tmp_path, runtime_session):
 def test_cli_evaluate_acquisition_needs_db_and_out(capsys):
     from flows.cli import main
 
-    assert main(["evaluate", "acquisition", "--db", "x"]) == 1
+    assert main(["evaluate", "acquisition", "--db", "x"]) == 2
     assert "give --db TRUTH_DB_DIR and --out DIR" in capsys.readouterr().err
 
 
@@ -58,5 +58,5 @@ def test_cli_evaluate_ingest_still_needs_truth_and_btf(capsys):
 def test_cli_bad_scale(argv, msg, tmp_path, capsys):
     from flows.cli import main
 
-    assert main(["evaluate", "acquisition", "--db", str(tmp_path / "db"), "--out", str(tmp_path / "o"), *argv]) == 1
+    assert main(["evaluate", "acquisition", "--db", str(tmp_path / "db"), "--out", str(tmp_path / "o"), *argv]) == 2
     assert msg in capsys.readouterr().err

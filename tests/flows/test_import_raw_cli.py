@@ -25,7 +25,7 @@ def test_import_raw_lists_problems_then_imports(tmp_path, write_dng):
     cmd = [sys.executable, "-m", "flows.cli", "import-raw", str(tmp_path), "--manifest",
            str(tmp_path / "manifest.csv"), "--device", "tiny", "--out", str(tmp_path / "c.zarr")]
     bad = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300, env=dict(os.environ))
-    assert bad.returncode == 1
+    assert bad.returncode == 2
     assert "ghost.dng): file not found" in bad.stderr and "duplicate entry" in bad.stderr
     assert not (tmp_path / "c.zarr").exists()
     (tmp_path / "manifest.csv").write_text("\n".join(lines) + "\n")

@@ -146,7 +146,7 @@ def test_ingest_names_every_problem_of_a_bad_capture_and_keeps_the_finished_outp
     bad = _corrupted(capture, tmp_path, corrupt_all)
     out, before = finished_copy
     code, _, err = run_btf("ingest", bad, "--out", out, "--overwrite")
-    assert code == 1, err
+    assert code == 2, err
     assert f"capture store '{bad}' (btf-capture 1.0) has {len(REFUSED_AT_OPEN)} problems" in err, err
     for case, (_, needles) in REFUSED_AT_OPEN.items():
         for needle in (f"{bad}: {needles[0]}", *needles[1:]):
@@ -166,7 +166,7 @@ def test_a_bracket_without_a_usable_pixel_is_an_error(corrupt, found, capture, t
     bad = _corrupted(capture, tmp_path, corrupt)
     out = tmp_path / "btf.zarr"
     code, _, err = run_btf("ingest", bad, "--out", out)
-    assert code == 1, err
+    assert code == 2, err
     assert f"{bad}: raw[(t, c, i)=(0, 1, 3) [shortest exposure {found}]]: 1 of 64 bracket(s)" in err, err
     assert "Capture those brackets again with shorter exposures where saturated" in err
     validity = json.loads(_report(out).read_text())["valid_fraction"]
@@ -184,7 +184,7 @@ def test_a_failed_overwrite_names_the_input_and_keeps_the_finished_output(corrup
     bad = _corrupted(capture, tmp_path, corrupt)
     out, before = finished_copy
     code, _, err = run_btf("ingest", bad, "--out", out, "--overwrite")
-    assert code == 1, err
+    assert code == 2, err
     assert f"{bad}: {named}" in err, err
     assert _digest(out, _report(out)) == before
 
@@ -200,7 +200,7 @@ def test_a_failed_staged_overwrite_keeps_the_output_and_the_rerun_resumes_and_re
     matrix.write_text(json.dumps({"matrix": (0.5 * np.eye(3)).tolist()}))
     bad = _corrupted(capture, tmp_path, _truncated_chunk)
     code, _, err = run_btf("ingest", bad, "--out", out, "--overwrite", "--colour-matrix", matrix)
-    assert code == 1 and f"{bad}: raw[(t, c)=(0, 0)] cannot be read" in err, err
+    assert code == 2 and f"{bad}: raw[(t, c)=(0, 0)] cannot be read" in err, err
     assert _digest(out, _report(out)) == before
     staging = tmp_path / "finished.partial.zarr"
     staged = zarr.open_group(str(staging), mode="r")
@@ -343,7 +343,7 @@ def test_import_raw_names_bad_files_and_keeps_the_finished_store(case, raw_folde
     before = _digest(store)
     code, _, err = run_btf("import-raw", folder, "--manifest", folder / "manifest.csv", *extra,
                            "--out", store, "--overwrite")
-    assert code == 1, err
+    assert code == 2, err
     for needle in needles:
         assert needle in err, f"{needle!r} not in {err!r}"
     assert _digest(store) == before
@@ -358,5 +358,5 @@ def test_all_saturated_raw_files_are_named_by_ingest(raw_folder, tmp_path, write
                            "--out", store)
     assert code == 0, err                                   # the store holds what the camera recorded
     code, _, err = run_btf("ingest", store, "--out", tmp_path / "btf.zarr")
-    assert code == 1
+    assert code == 2
     assert f"{store}: raw[(t, c, i)=(0, 0, 1) [shortest exposure 100% saturated]]: 1 of 2 bracket(s)" in err, err

@@ -146,7 +146,7 @@ def test_reconstruct_sparse_and_multiplexed_captures(executed, run_btf):
     _model_from(full, root / "big-model", k=150)
     code, _, err = run_btf("reconstruct", runs["sparse"][2], "--model", root / "big-model", "--class", "leather",
                            "--out", root / "bad.zarr")
-    assert code == 1 and "tikhonov" in err and "measured rows for k=150" in err, err
+    assert code == 2 and "tikhonov" in err and "measured rows for k=150" in err, err
     assert not (root / "bad.zarr").exists() and not (root / "bad.partial.zarr").exists()
 
 
@@ -157,6 +157,6 @@ def test_plan_with_an_led_the_device_lacks_is_refused(run_btf, tmp_path):
     path = tmp_path / "bad.json"
     path.write_text(json.dumps(plan))
     code, _, err = run_btf("simulate", "--plan", path, *COMMON, "--out", tmp_path / "db")
-    assert code == 1
+    assert code == 2
     assert "shot 1" in err and "150" in err, err
     assert not (tmp_path / "db").exists()

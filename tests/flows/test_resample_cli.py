@@ -45,12 +45,12 @@ def test_cli_resamples_onto_ubo2014_and_names_bad_input(tiny_btf, tmp_path, runt
 
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps({"light_dirs": [[0, 0, 1]], "view_dirs": [[0, 0, 1], [0.5, 0, -0.1]]}))
-    assert main(["resample", str(tiny_btf), "--out", str(tmp_path / "x.zarr"), "--sampling", str(bad)]) == 1
+    assert main(["resample", str(tiny_btf), "--out", str(tmp_path / "x.zarr"), "--sampling", str(bad)]) == 2
     err = capsys.readouterr().err
     assert "bad.json: 1 problem(s)" in err and "view_dirs[1] = [0.5, 0, -0.1] points at or below the horizon" in err
     good = tmp_path / "good.json"
     good.write_text(json.dumps({"light_dirs": [[0, 0, 1]], "view_dirs": [[0, 0, 1]]}))
-    assert main(["resample", str(tiny_btf), "--out", str(out), "--sampling", str(good)]) == 1
+    assert main(["resample", str(tiny_btf), "--out", str(out), "--sampling", str(good)]) == 2
     assert "choose another --out or pass --overwrite" in capsys.readouterr().err
     assert zarr.open_group(str(out), mode="r", zarr_format=3)["btf"].shape[0] == 22801      # left alone
 
@@ -85,7 +85,7 @@ def test_a_failed_staged_overwrite_keeps_store_and_report_and_the_rerun_swaps_th
     bad[:, 0] = np.nan                                              # view 3, texel row 0
     group["btf"][48:64] = bad
     code, _, err = run_btf("resample", src, "--out", out, "--sampling", own, "--overwrite")
-    assert code == 1 and f"{src}: btf[48, 0, 0, 0] = nan" in err, err
+    assert code == 2 and f"{src}: btf[48, 0, 0, 0] = nan" in err, err
     assert _files(out, report) == before
     staged = zarr.open_group(str(tmp_path / "out" / "r.partial.zarr"), mode="r", zarr_format=3)
     assert not staged.attrs["complete"] and staged["written"][3] == 0

@@ -65,12 +65,12 @@ def test_cli_simulate_and_validate(tmp_path):
     # a corrupted store: validate names the array and exits 1
     (out / "000-carpet.zarr" / "exposure_time" / "zarr.json").unlink()
     check = _btf("validate", str(out / "000-carpet.zarr"))
-    assert check.returncode == 1 and "exposure_time" in check.stdout
+    assert check.returncode == 2 and "exposure_time" in check.stdout
 
 
 def test_cli_reports_bad_arguments(tmp_path):
     result = _btf("simulate", "--materials", "0", "--out", str(tmp_path))
-    assert result.returncode == 1
+    assert result.returncode == 2
     assert "n_materials must be >= 1" in result.stderr
 
 
@@ -138,5 +138,5 @@ def test_cli_ingest_of_a_simulated_capture(tiny_database, tmp_path):
     assert metrics["relative_l2_log_y"] == pytest.approx(errors["relative_l2_log_y"])
     # swapping the arguments names the mistake in one line
     swapped = _btf("evaluate", "ingest", "--truth", str(btf), "--btf", str(out / "000-stone.zarr"))
-    assert swapped.returncode == 1 and "this is not a capture store" in swapped.stderr
+    assert swapped.returncode == 2 and "this is not a capture store" in swapped.stderr
     assert swapped.stderr.count("\n  - ") == 1

@@ -1,0 +1,139 @@
+"""Issue 13: inputs are never outputs, half-made stores resume, errors are one line before start-up.
+
+Each test reproduces a finding of the issue on the real command line (``flows.cli.main``)
+and failed on the code before the fix.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import zarr
+
+from flows.cli import EXIT_BAD_INPUT, EXIT_FAILED
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _tree(path: Path) -> dict[str, int]:
+    """Every file under ``path`` with its size and modification time, to prove it was not touched."""
+    return {str(p.relative_to(path)): (p.stat().st_size, p.stat().st_mtime_ns) for p in sorted(path.rglob("*"))
+            if p.is_file()}
+
+
+def _capture(tiny_database) -> Path:
+    return sorted(tiny_database[1].glob("*.zarr"))[0]
+
+
+def test_ingest_never_overwrites_its_input(run_btf, tiny_database):
+    capture = _capture(tiny_database)
+    before = _tree(capture)
+    code, out, err = run_btf("ingest", capture, "--out", capture, "--overwrite")
+    assert code == EXIT_BAD_INPUT, (out, err)
+    assert f"--out {capture} is the input CAPTURE" in err and "Traceback" not in err, err
+    assert _tree(capture) == before
+
+
+@pytest.mark.parametrize("where", ["inside", "contains"])
+def test_no_output_inside_or_around_an_input(run_btf, tiny_database, tiny_btf, where):
+    capture = _capture(tiny_database)
+    out = capture / "btf.zarr" if where == "inside" else capture.parent
+    before = _tree(capture)
+    code, _, err = run_btf("ingest", capture, "--out", out, "--overwrite")
+    assert code == EXIT_BAD_INPUT and f"{where.replace('inside', 'is inside')} the input CAPTURE" in err, err
+    assert _tree(capture) == before
+    # the same guard serves every command: resample, export and render refuse their input too
+    for argv in (("resample", tiny_btf, "--out", tiny_btf, "--overwrite"),
+                 ("export-exr", tiny_btf, "--out", tiny_btf / "exr"),
+                 ("render", tiny_btf, "--out", tiny_btf / "x.png")):
+        code, _, err = run_btf(*argv)
+        assert code == EXIT_BAD_INPUT and "the input BTF" in err, (argv, err)
+
+
+def test_output_under_a_regular_file_is_one_line(run_btf, tiny_database, tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    code, _, err = run_btf("ingest", _capture(tiny_database), "--out", blocker / "btf.zarr")
+    assert code == EXIT_BAD_INPUT, err
+    assert err.count("\n") == 1 and f"{blocker} is a file, not a folder" in err and "Traceback" not in err, err
+
+
+def test_render_to_proc_is_one_line(run_btf, tiny_btf):
+    code, _, err = run_btf("render", tiny_btf, "--size", "16", "--out", "/proc/x.png")
+    assert code in (EXIT_BAD_INPUT, EXIT_FAILED), err
+    assert err.count("\n") == 1 and "/proc/x.png" in err and "Traceback" not in err, err
+
+
+@pytest.fixture()
+def full_disk(tmp_path):
+    """A real 256 KiB file system (tmpfs): writes past it fail with ENOSPC."""
+    mount = tmp_path / "small"
+    mount.mkdir()
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(mount)], capture_output=True)
+    if done.returncode != 0:
+        pytest.skip(f"cannot mount a small tmpfs here (needs root): {done.stderr.decode().strip()}")
+    try:
+        yield mount
+    finally:
+        subprocess.run(["umount", "-l", str(mount)], capture_output=True)
+
+
+def test_full_disk_is_a_failed_run_in_one_line(run_btf, tiny_database, full_disk):
+    code, _, err = run_btf("ingest", _capture(tiny_database), "--out", full_disk / "btf.zarr")
+    assert code == EXIT_FAILED, err
+    assert "No space left on device" in err and "free space or choose another --out" in err, err
+    assert "Traceback" not in err and err.count("\n") == 1, err
+
+
+def test_half_made_capture_store_is_rebuilt(run_btf, tmp_path):
+    """What a kill between creating the store folder and writing its attributes left (before
+    tasks.staging.begin_store): a root group without attributes. The rerun resumes it."""
+    db = tmp_path / "db"
+    half = zarr.open_group(str(db / "000-leather.zarr"), mode="w", zarr_format=3)
+    half.create_array("raw", shape=(1, 1), dtype="uint16")
+    (db / ".001-cloth.zarr.creating").mkdir(parents=True)          # a kill inside begin_store .. finish_store
+    code, _, err = run_btf("simulate", "--materials", "2", "--turntable", "1", "--texture-size", "8",
+                           "--out", db)
+    assert code == 0, err
+    assert not (db / ".001-cloth.zarr.creating").exists()
+    assert zarr.open_group(str(db / "000-leather.zarr"), mode="r").attrs["complete"] is True
+
+
+def test_refusals_name_cli_flags(run_btf, tmp_path):
+    foreign = tmp_path / "db" / "000-leather.zarr"
+    zarr.open_group(str(foreign), mode="w", zarr_format=3).attrs["schema"] = "something-else"
+    code, _, err = run_btf("simulate", "--materials", "1", "--turntable", "1", "--out", tmp_path / "db")
+    assert code == EXIT_BAD_INPUT and "--overwrite" in err and "overwrite=True" not in err.replace(
+        "--overwrite (overwrite=True)", ""), err
+
+
+def test_simulate_killed_while_creating_resumes(kill_btf_when, tmp_path):
+    db = tmp_path / "db"
+    first = db / "000-leather.zarr"
+    args = ["simulate", "--materials", "1", "--turntable", "1", "--texture-size", "8", "--out", str(db)]
+    kill_btf_when(args, lambda: first.exists() or (db / ".000-leather.zarr.creating").exists())
+    rerun = subprocess.run([sys.executable, "-m", "flows.cli", "--no-progress", *args], cwd=ROOT,
+                           capture_output=True, text=True, timeout=300)
+    assert rerun.returncode == 0, rerun.stderr
+    assert zarr.open_group(str(first), mode="r").attrs["complete"] is True
+
+
+def test_bad_manifest_fails_fast_without_traceback(tmp_path, write_dng):
+    import numpy as np
+
+    write_dng(tmp_path / "a.dng", np.full((16, 16), 500, np.uint16), "RGGB", 0.01)
+    (tmp_path / "m.csv").write_text("file,turntable,camera,illumination,exposure\na.dng,0,0,0,0\nb.dng,0,0,0,1\n")
+    start = time.monotonic()
+    done = subprocess.run([sys.executable, "-m", "flows.cli", "import-raw", str(tmp_path), "--manifest",
+                           str(tmp_path / "m.csv"), "--device", "tiny", "--out", str(tmp_path / "c.zarr")],
+                          cwd=ROOT, capture_output=True, text=True, timeout=120, env=dict(os.environ))
+    seconds = time.monotonic() - start
+    assert done.returncode == EXIT_BAD_INPUT, done.stderr
+    assert "b.dng" in done.stderr and "Traceback" not in done.stderr and "prefect" not in done.stderr.lower()
+    assert seconds < 20, f"the manifest was refused after {seconds:.0f} s: after a cluster started?"
+    assert not (tmp_path / "c.zarr").exists()
