@@ -78,15 +78,17 @@ def factors(n_lv: int, n_tx: int, rank: int, seed: int) -> tuple[np.ndarray, Cal
 
 def write_store(path: Path, U: np.ndarray, V: np.ndarray, s: np.ndarray, h: int, w: int, n_leds: int,
                 attrs: dict) -> float:
-    """Write ``B = U diag(s) V^T`` band by band to a btf-texture-like store; seconds."""
+    """Write ``B = U diag(s) V^T`` band by band to a btf-texture-like store (chunk checksums as the
+    pipeline's, :func:`tasks.integrity.create_array`); seconds."""
     import zarr
 
     from tasks.ingest import band_rows
+    from tasks.integrity import create_array
 
     n_lv = U.shape[0]
     rows = band_rows(n_leds, h, w)
     group = zarr.open_group(str(path), mode="w", zarr_format=3)
-    btf = group.create_array("btf", shape=(n_lv, h, w, 3), chunks=(n_leds, rows, w, 3), dtype="float32",
+    btf = create_array(group, "btf", shape=(n_lv, h, w, 3), chunks=(n_leds, rows, w, 3), dtype="float32",
                              fill_value=0.0, compressors=None,
                              dimension_names=["lv", "tex_row", "tex_col", "channel"])
     Us = (U * s).astype(np.float32)

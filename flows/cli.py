@@ -198,11 +198,15 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("export-exr", help="write BTF textures as OpenEXR files",
                        description="Write selected (or all) textures of a BTF store (from `btf ingest`) as "
                                    "float32 RGB OpenEXR files named lv<row>_t<turntable>_c<camera>_l<light>.exr, "
-                                   "with the light and view directions in each header.")
+                                   "with the light and view directions in each header. Textures with NaN or Inf "
+                                   "texels are refused (the message names the rows and counts) before any file is "
+                                   "written, unless --keep-nonfinite.")
     p.add_argument("btf", metavar="BTF", help="BTF store (.zarr)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--lv", default="all", metavar="ROWS",
                    help="rows to export: 'all' or a comma list of indices and ranges, e.g. 0,5,10-20 [default: all]")
+    p.add_argument("--keep-nonfinite", action="store_true",
+                   help="write textures with NaN or Inf texels as they are instead of refusing them")
 
     p = sub.add_parser("evaluate", help="measure a result against the simulator's ground truth",
                        description="Compare a result with the ground truth of a simulated capture and print the "
@@ -230,11 +234,19 @@ def build_parser() -> argparse.ArgumentParser:
                         "strategy and its renderings [default: 1]")
     p.add_argument("--report", default="report.json", metavar="PATH", help="where to write the metrics [default: report.json]")
 
-    p = sub.add_parser("validate", help="check capture stores and list every problem",
-                       description="Open each capture store, validate it against the btf-capture schema "
-                                   "(docs/capture-store.md) and print every problem found. Exit 1 if any.")
+    p = sub.add_parser("validate", help="check stores and list every problem",
+                       description="Open each store and print every problem found; exit 2 if any. A capture "
+                                   "store is validated against the btf-capture schema (docs/capture-store.md), "
+                                   "including a chunk file for every bracket marked written; a BTF, measurement "
+                                   "or model store (a `btf build-db` folder means its model.zarr) is opened. "
+                                   "--deep also reads every chunk of every array and names each corrupt, "
+                                   "truncated or missing one (array and chunk index). A store written before "
+                                   "chunk checksums were added is reported as such: --deep can then only find "
+                                   "unreadable chunks, not changed bytes.")
     p.add_argument("stores", nargs="+", metavar="STORE")
     p.add_argument("--allow-incomplete", action="store_true", help="accept stores whose run has not finished")
+    p.add_argument("--deep", action="store_true",
+                   help="read every chunk and verify its checksum (reads the whole store, one chunk at a time)")
     p = sub.add_parser("reconstruct", help="measurement store + model basis -> full BTF store",
                        description="Reconstruct a full BTF from a measurement store (`btf ingest` of a sparse or "
                                    "multiplexed plan capture) or a demultiplexed BTF store, with a class basis of "
@@ -316,9 +328,12 @@ def _export_exr(args: argparse.Namespace) -> int:
         group = zarr.open_group(args.btf, mode="r", zarr_format=3)
         if group.attrs.get("schema") != "btf-texture":
             raise ValueError(f"not a BTF store (schema {group.attrs.get('schema')!r}); give the output of `btf ingest`")
-        files = export_exr(args.btf, args.out, parse_selection(args.lv, group["btf"].shape[0]))
+        files = export_exr(args.btf, args.out, parse_selection(args.lv, group["btf"].shape[0]),
+                           keep_nonfinite=args.keep_nonfinite)
     except (ValueError, KeyError, FileNotFoundError) as exc:
-        print(f"btf export-exr: {args.btf}: {exc}", file=sys.stderr)
+        text = f"no array {exc} in the store; give the output of `btf ingest`" if isinstance(exc, KeyError) else str(exc)
+        where = "" if text.startswith(str(args.btf)) else f"{args.btf}: "      # every message names the store once
+        print(f"btf export-exr: {where}{text}", file=sys.stderr)
         return EXIT_BAD_INPUT
     print(json.dumps({"out": str(Path(args.out).resolve()), "files": len(files)}, indent=2))
     return 0
@@ -371,19 +386,39 @@ def _schedule(args: argparse.Namespace) -> int:
 
 
 def _validate(args: argparse.Namespace) -> int:
+    from tasks.integrity import CHECKSUM_NOTE, open_any_store, store_kind, unchecked_arrays, verify_store
     from tasks.store import validate_capture_store
 
+    opened_only = ("btf-texture", "btf-measurement", "btf-model")   # no schema check beyond opening (yet)
     failed = 0
     for path in args.stores:
-        problems = validate_capture_store(path, require_complete=not args.allow_incomplete)
-        if problems:
-            failed += 1
-            print(f"{path}: {len(problems)} problem(s)")
-            for problem in problems:
-                where = f"[{problem.index}]" if problem.index else ""
-                print(f"  {problem.array}{where}: expected {problem.expected}, found {problem.found}. {problem.hint}")
+        try:
+            group, _ = open_any_store(path)
+        except (FileNotFoundError, ValueError):
+            group = None                                     # validate_capture_store says what is there
+        kind = store_kind(group) if group is not None else None
+        lines: list[str] = []
+        if kind in opened_only:
+            status = f"valid ({kind} store opened; schema checks are for capture stores"
+            status += ")" if args.deep else ", --deep reads every chunk)"
         else:
-            print(f"{path}: valid")
+            status = "valid"
+            for problem in validate_capture_store(path, require_complete=not args.allow_incomplete):
+                if args.deep and (problem.index or "").startswith("chunk "):
+                    continue                                 # --deep names each of these chunks below
+                where = f"[{problem.index}]" if problem.index else ""
+                lines.append(f"{problem.array}{where}: expected {problem.expected}, found {problem.found}. "
+                             f"{problem.hint}")
+        if group is not None and args.deep:
+            lines += [f"array {p.array}, chunk {p.chunk}: {p.problem}; {p.hint}" for p in verify_store(group)]
+        notes = [CHECKSUM_NOTE] if group is not None and unchecked_arrays(group) else []
+        if lines:
+            failed += 1
+            print(f"{path}: {len(lines)} problem(s)")
+        else:
+            print(f"{path}: {status}")
+        for line in lines + [f"note: {n}" for n in notes]:
+            print(f"  {line}")
     return EXIT_BAD_INPUT if failed else 0
 
 
@@ -479,12 +514,13 @@ def _preflight(args: argparse.Namespace) -> dict:
     return prepared
 
 
-def _error_message(exc: BaseException) -> tuple[str, int]:
+def _error_message(exc: BaseException, args: argparse.Namespace) -> tuple[str, int]:
     """One line (or the lines of a list of problems) for ``exc`` and the exit code it means."""
     if isinstance(exc, KeyError) and exc.args:
         return str(exc.args[0]), EXIT_BAD_INPUT
     if isinstance(exc, OSError) and exc.errno is not None and exc.strerror:
-        where = exc.filename if exc.filename is not None else "?"
+        # an error without a file name (a full disk while a worker wrote a chunk) is the output's
+        where = exc.filename if exc.filename is not None else next(iter(_io_args(args)[0].values()), "?")
         if exc.errno in _RUN_FAILURES:
             return f"{where}: {exc.strerror} ({_RUN_FAILURES[exc.errno]})", EXIT_FAILED
         hint = _PATH_HINTS.get(exc.errno)
@@ -515,7 +551,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if isinstance(exc, RuntimeUnavailable):
             message, code = str(exc), EXIT_RUNTIME
         else:
-            message, code = _error_message(exc)
+            message, code = _error_message(exc, args)
         print(f"btf {args.command}: {message}", file=sys.stderr)
         return code
 

@@ -114,7 +114,7 @@ def ingest_flow(capture: str, out: str, scheduler_address: str, overwrite: bool 
               "radiometric": None if calibration is None else calibration.info,
               "valid_fraction": validity, "errors_against_truth": ingest_evaluation(capture, store)}
     if validity["problem"]:
-        # bad input: `btf ingest` exits 1, the report (beside the store that holds this run) lists the brackets
+        # bad input: `btf ingest` exits 2 (bad input), the report (beside the store that holds this run) lists the brackets
         write_json(Path(store).with_name(Path(store).stem + ".report.json"), report)
         kept = f"; {out} was left as it was, the new store is {store}" if stage["staged"] else ""
         raise ValueError(validity["problem"] + kept)

@@ -9,8 +9,10 @@ workers, so that no worker starts a server of its own.
 from __future__ import annotations
 
 import contextlib
+import ipaddress
 import logging
 import os
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -46,13 +48,53 @@ class RuntimeUnavailable(RuntimeError):
     """Prefect or the Dask cluster could not be started; the message says why."""
 
 
+class ProfileError(ValueError):
+    """An execution profile is missing, not YAML, or names a key, type or cluster kind that does not
+    exist; the one-line message names the file and the key and says what is allowed (bad input: the
+    CLI exits ``EXIT_BAD_INPUT`` before Prefect or a cluster starts)."""
+
+
 @dataclass(frozen=True)
 class Profile:
-    """A parsed execution profile (see ``infra/local.yaml``)."""
+    """A parsed and validated execution profile (see ``infra/local.yaml``); build it with
+    :func:`load_profile`, which refuses what a cluster kind does not know."""
 
     path: str
     cluster: dict[str, Any] = field(default_factory=dict)
     prefect: dict[str, Any] = field(default_factory=dict)
+
+
+_INT = (int,)
+_NUMBER = (int, float)
+_STR = (str,)
+_BOOL = (bool,)
+_TYPE_NAMES = {int: "an integer", float: "a number", str: "a string", bool: "true or false", type(None): "null"}
+
+#: The keys of a profile's ``cluster:`` section, per cluster kind, with the types their values may have.
+#: A later cluster kind (SLURM, Kubernetes) adds its row here and its starter in ``_CLUSTER_STARTERS``;
+#: ``infra/local.yaml`` explains each key of the ``local`` kind.
+CLUSTER_KEYS: dict[str, dict[str, tuple[type, ...]]] = {
+    "local": {
+        "kind": _STR,
+        "n_workers": _INT,
+        "threads_per_worker": _INT,
+        "memory_limit": (str, int),       # "4GiB", bytes, or "auto"
+        "processes": _BOOL,
+        "dashboard": _BOOL,
+        "host": _STR,                     # interface of the scheduler, nannies and workers [127.0.0.1]
+        "dashboard_address": _STR,        # host:port of the scheduler's HTTP server [<host>:8787 or :0]
+    },
+}
+
+#: The keys of a profile's ``prefect:`` section (every cluster kind).
+PREFECT_KEYS: dict[str, tuple[type, ...]] = {
+    "api_url": (str, type(None)),
+    "startup_timeout_s": _NUMBER,
+}
+
+#: Where a default run listens: every socket (scheduler, its HTTP server, nannies, workers, dashboard;
+#: the temporary Prefect server binds 127.0.0.1 by itself) stays on this machine (docs/decisions.md).
+LOOPBACK = "127.0.0.1"
 
 
 #: Errors that mean bad input or a refused output (the message says what to fix): running the stage
@@ -76,36 +118,234 @@ def retry_unless_bad_input(task: Any, task_run: Any, state: Any) -> bool:
 RETRY_ONCE: dict[str, Any] = {"retries": 1, "retry_condition_fn": retry_unless_bad_input}
 
 
+def _yaml_problem(exc: yaml.YAMLError) -> str:
+    """One line for a YAML error: its problem and where (PyYAML's own text spans several lines)."""
+    problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+    mark = getattr(exc, "problem_mark", None)
+    where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
+    return " ".join(f"{where}{problem}".split())
+
+
+def _check_section(path: Path, section: str, values: Any, allowed: dict[str, tuple[type, ...]],
+                   what: str) -> dict[str, Any]:
+    if values is None:
+        return {}
+    if not isinstance(values, dict):
+        raise ProfileError(f"execution profile {path}: '{section}' must be a mapping of keys "
+                           f"({', '.join(allowed)}), not {type(values).__name__}")
+    for key, value in values.items():
+        if key not in allowed:
+            raise ProfileError(f"execution profile {path}: unknown key '{section}.{key}'{what}; "
+                               f"allowed keys: {', '.join(allowed)}")
+        types = allowed[key]
+        if not isinstance(value, types) or (isinstance(value, bool) and bool not in types):
+            expected = " or ".join(_TYPE_NAMES[t] for t in types if not (t is int and float in types))
+            raise ProfileError(f"execution profile {path}: '{section}.{key}' must be {expected}, "
+                               f"not {value!r} ({type(value).__name__})")
+    return dict(values)
+
+
+def _check_values(path: Path, cluster: dict[str, Any], prefect: dict[str, Any]) -> None:
+    for key in ("n_workers", "threads_per_worker"):
+        if key in cluster and cluster[key] < 1:
+            raise ProfileError(f"execution profile {path}: 'cluster.{key}' must be at least 1, not {cluster[key]}")
+    if "memory_limit" in cluster and cluster["memory_limit"] != "auto":
+        from dask.utils import parse_bytes
+
+        try:
+            if parse_bytes(cluster["memory_limit"]) <= 0:
+                raise ValueError("not positive")
+        except (ValueError, TypeError):
+            raise ProfileError(f"execution profile {path}: 'cluster.memory_limit' must be a size like 4GiB "
+                               f"(per worker), a number of bytes or auto, not {cluster['memory_limit']!r}") from None
+    if "startup_timeout_s" in prefect and not prefect["startup_timeout_s"] > 0:
+        raise ProfileError(f"execution profile {path}: 'prefect.startup_timeout_s' must be a number of "
+                           f"seconds above 0, not {prefect['startup_timeout_s']!r}")
+
+
 def load_profile(path: str | os.PathLike | None = None) -> Profile:
-    """Read an execution profile; ``None`` means ``$BTF_CLUSTER_CONFIG`` or the default."""
+    """Read and validate an execution profile; ``None`` means ``$BTF_CLUSTER_CONFIG`` or the default.
+
+    This is the one place a profile is checked: every key must exist for its section and cluster kind
+    (``CLUSTER_KEYS``, ``PREFECT_KEYS``) and have a value of its type, so that a typo is named before
+    Prefect or a cluster starts instead of reaching ``LocalCluster``.
+
+    Raises
+    ------
+    ProfileError
+        The file is missing or unreadable, not YAML (``!!python/...`` tags included), or names an
+        unknown section, key or cluster kind, or a value of the wrong type; the message is one line
+        that names the file and the key.
+    """
     path = Path(path or os.environ.get("BTF_CLUSTER_CONFIG") or DEFAULT_PROFILE)
     try:
-        data = yaml.safe_load(path.read_text()) or {}
+        data = yaml.safe_load(path.read_text())
     except FileNotFoundError:
-        raise RuntimeUnavailable(
+        raise ProfileError(
             f"execution profile {path} does not exist; pass --cluster with a file "
             f"shaped like {DEFAULT_PROFILE}"
         ) from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ProfileError(f"execution profile {path} cannot be read: {exc}; pass --cluster with a readable "
+                           "YAML file") from None
     except yaml.YAMLError as exc:
-        raise RuntimeUnavailable(f"execution profile {path} is not valid YAML: {exc}") from None
-    if not isinstance(data, dict) or not isinstance(data.get("cluster", {}), dict):
-        raise RuntimeUnavailable(f"execution profile {path}: expected a mapping with a 'cluster' section")
-    return Profile(str(path), dict(data.get("cluster") or {}), dict(data.get("prefect") or {}))
+        raise ProfileError(f"execution profile {path} is not valid YAML ({_yaml_problem(exc)}); a profile holds "
+                           f"plain keys and values only, shaped like {DEFAULT_PROFILE}") from None
+    data = {} if data is None else data
+    if not isinstance(data, dict):
+        raise ProfileError(f"execution profile {path}: expected a mapping with 'cluster' and 'prefect' "
+                           f"sections, not {type(data).__name__}")
+    unknown = [key for key in data if key not in ("cluster", "prefect")]
+    if unknown:
+        raise ProfileError(f"execution profile {path}: unknown section '{unknown[0]}'; "
+                           "allowed sections: cluster, prefect")
+    raw_cluster = data.get("cluster") or {}
+    kind = raw_cluster.get("kind", "local") if isinstance(raw_cluster, dict) else "local"
+    if not isinstance(kind, str) or kind not in CLUSTER_KEYS:
+        raise ProfileError(
+            f"execution profile {path}: cluster kind {kind!r} is not supported yet "
+            f"(supported: {', '.join(map(repr, CLUSTER_KEYS))}); "
+            "SLURM and Kubernetes profiles arrive with the cluster issue"
+        )
+    cluster = _check_section(path, "cluster", data.get("cluster"), CLUSTER_KEYS[kind],
+                             f" for cluster kind {kind!r}")
+    prefect = _check_section(path, "prefect", data.get("prefect"), PREFECT_KEYS, "")
+    _check_values(path, cluster, prefect)
+    return Profile(str(path), cluster, prefect)
+
+
+def _host_of(address: str) -> str:
+    """The host of ``tcp://HOST``, ``HOST:PORT``, ``[V6]:PORT`` or ``:PORT`` ('' means every interface)."""
+    address = address.split("://", 1)[-1]
+    if address.startswith("["):
+        return address[1:].split("]", 1)[0]
+    if address.count(":") == 1:
+        return address.split(":", 1)[0]
+    return address
+
+
+def _is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:  # '' (every interface), 0.0.0.0 parses; a host name or interface IP may be public
+        return False
+
+
+def exposure_warnings(profile: Profile) -> list[str]:
+    """One-line warnings for the sockets of ``profile``'s cluster that listen beyond this machine without TLS.
+
+    A default profile binds everything to 127.0.0.1 and gets none. A profile that sets ``cluster.host``
+    or ``cluster.dashboard_address`` off the loopback asked for it explicitly; it still gets a warning
+    unless the Dask configuration sets up TLS (``distributed.comm.require-encryption`` or a
+    ``tls://`` host for the scheduler and workers, ``distributed.scheduler.dashboard.tls.cert`` for the
+    HTTP server), because the scheduler runs any code sent to it and its HTTP server serves metrics,
+    worker addresses and logs, both without authentication.
+    """
+    import dask
+
+    spec = profile.cluster
+    warnings = []
+    host = spec.get("host", LOOPBACK)
+    comm_tls = host.startswith("tls://") or bool(dask.config.get("distributed.comm.require-encryption", False))
+    if not _is_loopback(_host_of(host)) and not comm_tls:
+        warnings.append(
+            f"btf: warning: {profile.path}: the Dask scheduler and workers listen on "
+            f"{_host_of(host) or 'every interface'} (cluster.host) without TLS, so anyone who reaches this "
+            f"machine can run code on them; use host {LOOPBACK} or set distributed.comm.require-encryption "
+            "and distributed.comm.tls.* in the Dask config"
+        )
+    http = _dashboard_address(spec)
+    http_tls = bool(dask.config.get("distributed.scheduler.dashboard.tls.cert", None))
+    if not _is_loopback(_host_of(http)) and not http_tls:
+        warnings.append(
+            f"btf: warning: {profile.path}: the Dask scheduler's HTTP server (dashboard, /metrics, worker "
+            f"addresses and logs) listens on {http} without TLS or authentication; use "
+            f"dashboard_address {LOOPBACK}:8787 or set distributed.scheduler.dashboard.tls.cert in the Dask config"
+        )
+    return warnings
+
+
+def _dashboard_address(spec: dict[str, Any]) -> str:
+    """``host:port`` of the scheduler's HTTP server: the profile's, else the cluster host on 8787 (dashboard) or
+    a random port (it always serves /metrics); never the empty host, which distributed binds to 0.0.0.0."""
+    if "dashboard_address" in spec:
+        return spec["dashboard_address"]
+    host = _host_of(spec.get("host", LOOPBACK)) or LOOPBACK
+    host = f"[{host}]" if ":" in host else host
+    return f"{host}:{8787 if spec.get('dashboard', False) else 0}"
+
+
+#: Prefect loggers that report a failed task or flow run ("Task run ... Finished in state Failed",
+#: "Flow run ... Encountered exception", each with the traceback). The error reaches the caller anyway
+#: and the CLI names it in one line, so by default their ERROR records are dropped (``quiet_logs``).
+RUN_LOGGERS = ("prefect.flow_runs", "prefect.task_runs")
+
+#: Set by ``quiet_logs`` when it chose ``PREFECT_LOGGING_LEVEL`` itself (the user did not).
+_QUIET = {"prefect": False}
+
+
+class _QuietRunFailures(logging.Filter):
+    """Drops the ERROR records of ``RUN_LOGGERS`` while Prefect's log level is the one ``quiet_logs`` chose."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        chosen = _QUIET["prefect"] and os.environ.get("PREFECT_LOGGING_LEVEL") == "WARNING"
+        return record.levelno < logging.ERROR or not chosen
+
+
+_RUN_FAILURE_FILTER = _QuietRunFailures()
+
+
+class _QuietTaskFailures(logging.Filter):
+    """Drops a Dask worker's "Compute Failed" record (a screen of traceback per failed task, printed by
+    every worker before the client re-raises the task's exception, which ``btf`` names in one line)
+    while Dask's log level is the default warning; ``DASK_LOGGING__DISTRIBUTED=info`` shows it."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        quiet = os.environ.get("DASK_LOGGING__DISTRIBUTED", "warning").lower() == "warning"
+        return not (quiet and isinstance(record.msg, str) and record.msg.startswith("Compute Failed"))
+
+
+_TASK_FAILURE_FILTER = _QuietTaskFailures()
+
+
+def quiet_task_failures() -> None:
+    """Install :class:`_QuietTaskFailures` on ``distributed.worker`` in this process (idempotent)."""
+    logger = logging.getLogger("distributed.worker")
+    if _TASK_FAILURE_FILTER not in logger.filters:
+        logger.addFilter(_TASK_FAILURE_FILTER)
 
 
 def quiet_logs() -> None:
-    """Keep Prefect, Dask and HTTP chatter out of the terminal unless asked for."""
-    os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
+    """Keep Prefect, Dask and HTTP chatter out of the terminal unless asked for.
+
+    Unless ``PREFECT_LOGGING_LEVEL`` is set by the user, Prefect logs warnings only and the tracebacks
+    Prefect prints for a failed task or flow run (``RUN_LOGGERS``) are dropped: the error is raised to
+    the caller, and ``btf`` names it in one line. ``PREFECT_LOGGING_LEVEL=INFO`` (or ``DEBUG``) shows
+    them, as ``DASK_LOGGING__DISTRIBUTED=info`` shows Dask's.
+    """
+    if "PREFECT_LOGGING_LEVEL" not in os.environ:
+        os.environ["PREFECT_LOGGING_LEVEL"] = "WARNING"
+        _QUIET["prefect"] = True
     os.environ.setdefault("PREFECT_LOGGING_TO_API_ENABLED", "false")
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
     os.environ.setdefault("PREFECT_UI_ENABLED", "false")
     # distributed sets its logger levels from dask config when first imported
-    os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "warning")
+    dask_level = os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "warning")
     os.environ.setdefault("DASK_DISTRIBUTED__WORKER__DAEMON", "False")
     import prefect  # noqa: F401  (prefect configures logging on import; override after it)
 
-    for name in ("distributed", "prefect", "httpx", "uvicorn", "asyncio"):
+    for name in ("httpx", "uvicorn", "asyncio"):
         logging.getLogger(name).setLevel(logging.WARNING)
+    if _QUIET["prefect"] and os.environ["PREFECT_LOGGING_LEVEL"] == "WARNING":
+        logging.getLogger("prefect").setLevel(logging.WARNING)
+    if dask_level.lower() == "warning":
+        logging.getLogger("distributed").setLevel(logging.WARNING)
+    for name in RUN_LOGGERS:
+        if _RUN_FAILURE_FILTER not in logging.getLogger(name).filters:
+            logging.getLogger(name).addFilter(_RUN_FAILURE_FILTER)
+    quiet_task_failures()               # a threaded cluster's workers log in this process
 
 
 def _check_health(api_url: str, timeout: float) -> None:
@@ -168,56 +408,110 @@ def prefect_api(profile: Profile) -> Iterator[str]:
 
 @contextlib.contextmanager
 def dask_client(profile: Profile, prefect_url: str | None = None) -> Iterator[Any]:
-    """Start the profile's Dask cluster and yield a connected ``distributed.Client``."""
-    import dask
-    from distributed import Client, LocalCluster
+    """Start the profile's Dask cluster and yield a connected ``distributed.Client``.
 
-    spec = dict(profile.cluster)
-    kind = spec.pop("kind", "local")
-    if kind != "local":
-        raise RuntimeUnavailable(
-            f"{profile.path}: cluster kind {kind!r} is not supported yet (supported: 'local'); "
-            "SLURM and Kubernetes profiles arrive with the cluster issue"
-        )
+    Every socket of the cluster binds ``cluster.host`` (default 127.0.0.1), the scheduler's HTTP server
+    ``cluster.dashboard_address`` (default the same host); a profile that binds beyond this machine
+    without TLS gets one warning line per socket kind on stderr (:func:`exposure_warnings`). On exit
+    the client is closed first, then the cluster, without Dask's shutdown warnings (:func:`_close_quietly`).
+    """
+    import dask
+
+    start = _CLUSTER_STARTERS[profile.cluster.get("kind", "local")]  # load_profile refused other kinds
     environ = dict(WORKER_ENVIRON)
     if prefect_url:
         environ["PREFECT_API_URL"] = prefect_url
     for key in ("PREFECT_LOGGING_LEVEL", "PREFECT_LOGGING_TO_API_ENABLED", "BTF_SHARED_DATA"):
         if key in os.environ:
             environ[key] = os.environ[key]
+    for line in exposure_warnings(profile):
+        print(line, file=sys.stderr)
     # distributed's nanny applies pre-spawn-environ to this process's os.environ too:
     # restore it afterwards, or a later run in this process would inherit a dead server's URL
     saved = {key: os.environ.get(key) for key in environ}
-    dashboard = bool(spec.pop("dashboard", False))
     try:
         with dask.config.set({"distributed.nanny.pre-spawn-environ": environ,
                               "distributed.worker.daemon": False}):
             try:
-                cluster = LocalCluster(
-                    n_workers=int(spec.pop("n_workers", 2)),
-                    threads_per_worker=int(spec.pop("threads_per_worker", 1)),
-                    memory_limit=spec.pop("memory_limit", "4GiB"),
-                    processes=bool(spec.pop("processes", True)),
-                    # the scheduler always serves HTTP (metrics); a random port avoids clashes
-                    dashboard_address=":8787" if dashboard else ":0",
-                    scheduler_kwargs={"dashboard": dashboard},
-                    silence_logs=logging.WARNING,
-                    **spec,
-                )
+                cluster = start(profile.cluster)
             except Exception as exc:
                 raise RuntimeUnavailable(f"could not start the Dask cluster of {profile.path}: {exc}") from exc
+            client = None
             try:
-                with Client(cluster) as client:
-                    client.register_plugin(WorkerSetup(), name="btf-worker-setup")
-                    yield client
+                from distributed import Client
+
+                client = Client(cluster)
+                client.register_plugin(WorkerSetup(), name="btf-worker-setup")
+                yield client
             finally:
-                cluster.close()
+                _close_quietly(client, cluster)
     finally:
         for key, value in saved.items():
             if value is None:
                 os.environ.pop(key, None)
             else:
                 os.environ[key] = value
+
+
+def _local_cluster(spec: dict[str, Any]) -> Any:
+    """``distributed.LocalCluster`` of a ``kind: local`` profile section (keys: ``CLUSTER_KEYS['local']``)."""
+    from distributed import LocalCluster
+
+    dashboard = bool(spec.get("dashboard", False))
+    return LocalCluster(
+        n_workers=spec.get("n_workers", 2),
+        threads_per_worker=spec.get("threads_per_worker", 1),
+        memory_limit=spec.get("memory_limit", "4GiB"),
+        processes=spec.get("processes", True),
+        # scheduler, nannies and workers: None is LocalCluster's 127.0.0.1 over TCP (in-process: no socket)
+        host=spec.get("host"),
+        # the scheduler always serves HTTP (/metrics, worker addresses, logs): on the cluster's host, on
+        # 8787 with the dashboard, else on a random port
+        dashboard_address=_dashboard_address(spec),
+        scheduler_kwargs={"dashboard": dashboard},
+        silence_logs=logging.WARNING,
+    )
+
+
+#: How each cluster kind of ``CLUSTER_KEYS`` starts: its profile section -> a ``distributed`` cluster.
+_CLUSTER_STARTERS = {"local": _local_cluster}
+
+#: distributed's loggers that report, at WARNING, a worker process killed or a task cancelled while
+#: closing (``Worker process still alive after 4.0 seconds, killing``, ``Async instruction ... cancelled``).
+_CLOSE_LOGGERS = ("distributed",)
+
+
+def _raise_log_level(names: tuple[str, ...] = _CLOSE_LOGGERS) -> None:
+    """Raise ``names`` to ERROR where they are at the quiet default (WARNING); a user's INFO stays."""
+    for name in names:
+        logger = logging.getLogger(name)
+        if logger.getEffectiveLevel() == logging.WARNING:
+            logger.setLevel(logging.ERROR)
+
+
+def _close_quietly(client: Any, cluster: Any) -> None:
+    """Close ``client``, then ``cluster``, without the warnings Dask prints on the way.
+
+    The run is over (finished or failed) when this runs: a worker still busy with a task of a failed
+    run gets distributed's grace (4 s) to finish it and is then killed, as before, but the nanny's
+    "still alive ... killing" and the workers' "task cancelled" warnings describe that expected end,
+    not a problem, so they are not printed. Closing the client first lets the scheduler release its
+    tasks before the workers are asked to stop.
+    """
+    distributed_logger = logging.getLogger("distributed")
+    level = distributed_logger.level
+    try:
+        if client is not None:
+            if getattr(cluster, "processes", False):  # in-process workers share this process's loggers
+                with contextlib.suppress(Exception):  # a wedged worker must not hold up the close
+                    client.sync(client._run, _raise_log_level, on_error="ignore", callback_timeout=5)
+            with contextlib.suppress(Exception):
+                client.close(timeout=10)
+        if distributed_logger.getEffectiveLevel() == logging.WARNING:
+            distributed_logger.setLevel(logging.ERROR)
+        cluster.close(timeout=30)
+    finally:
+        distributed_logger.setLevel(level)
 
 
 class WorkerSetup(WorkerPlugin):
@@ -233,14 +527,21 @@ class WorkerSetup(WorkerPlugin):
         import cv2
 
         cv2.setNumThreads(1)
+        quiet_task_failures()
         for name in self.modules:
             importlib.import_module(name)
 
 
 @contextlib.contextmanager
-def runtime(profile_path: str | os.PathLike | None = None) -> Iterator[tuple[Profile, str, Any]]:
-    """Prefect API and Dask client for one run: ``(profile, prefect_url, client)``."""
+def runtime(profile: Profile | str | os.PathLike | None = None) -> Iterator[tuple[Profile, str, Any]]:
+    """Prefect API and Dask client for one run: ``(profile, prefect_url, client)``.
+
+    ``profile`` is a :class:`Profile` from :func:`load_profile` (the CLI loads it before anything
+    starts, so that a bad profile is bad input), or a path to load, or ``None`` for
+    ``$BTF_CLUSTER_CONFIG`` or ``infra/local.yaml``.
+    """
     quiet_logs()
-    profile = load_profile(profile_path)
+    if not isinstance(profile, Profile):
+        profile = load_profile(profile)
     with prefect_api(profile) as url, dask_client(profile, url) as client:
         yield profile, url, client

@@ -147,16 +147,19 @@ class CorruptChunkError(ValueError):
         What is wrong, e.g. ``"checksum mismatch (...)"``.
     hint : str
         What to do.
+    kind : {"corrupt", "truncated", "missing", "unreadable"}
+        The problem's class.
     """
 
     def __init__(self, store: str, array: str, chunk: tuple[int, ...] | None, problem: str,
-                 hint: str = _GENERIC_HINT) -> None:
+                 hint: str = _GENERIC_HINT, kind: str = "corrupt") -> None:
         self.store, self.array, self.chunk, self.problem, self.hint = str(store), array, chunk, problem, hint
+        self.kind = kind
         where = f"chunk {chunk}" if chunk is not None else "a chunk"
         super().__init__(f"{self.store}: array {array}, {where}: {problem}; {hint}")
 
     def __reduce__(self):  # picklable across Dask / Prefect process boundaries
-        return (type(self), (self.store, self.array, self.chunk, self.problem, self.hint))
+        return (type(self), (self.store, self.array, self.chunk, self.problem, self.hint, self.kind))
 
 
 @dataclass(frozen=True)
@@ -185,7 +188,7 @@ class ChunkProblem:
 
     def error(self) -> CorruptChunkError:
         """This problem as the exception a stage raises."""
-        return CorruptChunkError(self.store, self.array, self.chunk, self.problem, self.hint)
+        return CorruptChunkError(self.store, self.array, self.chunk, self.problem, self.hint, self.kind)
 
     def __str__(self) -> str:
         return str(self.error())
@@ -224,7 +227,8 @@ def _diagnose(pipeline: BatchedCodecPipeline, n_bytes: int, spec: Any, exc: Base
     except Exception:  # noqa: BLE001 - a variable-size codec (compression): no expected size
         expected = None
     if expected is not None and n_bytes < expected:
-        return "truncated", f"truncated ({n_bytes} of {expected} bytes; the chunk file was cut short after it was written)"
+        return "truncated", (f"truncated ({n_bytes} of {expected} bytes; the chunk file was cut short after it "
+                             "was written)")
     if expected is not None and n_bytes > expected:
         return "corrupt", f"wrong size ({n_bytes} bytes, {expected} written)"
     if "checksum" in str(exc).lower():
@@ -232,7 +236,7 @@ def _diagnose(pipeline: BatchedCodecPipeline, n_bytes: int, spec: Any, exc: Base
     return "unreadable", f"does not decode ({type(exc).__name__}: {exc})"
 
 
-#: ``(schema, source) -> what to re-run``; see :func:`rerun_hint`.
+#: ``schema -> what to do`` for the kinds written by one command; see :func:`rerun_hint`.
 _RERUN = {
     "btf-capture": "write the capture again (`btf simulate --overwrite` or `btf import-raw --overwrite`) or "
                    "restore the store from a backup",
@@ -284,12 +288,12 @@ class LocatingCodecPipeline(BatchedCodecPipeline):
         except (CorruptChunkError, OSError, MemoryError):
             raise
         except Exception as exc:
-            located = await self._locate(batch_info, exc)
+            located = await self._locate(batch_info)
             if located is None:
                 raise
             raise located from exc
 
-    async def _locate(self, batch_info: Sequence[tuple], exc: BaseException) -> CorruptChunkError | None:
+    async def _locate(self, batch_info: Sequence[tuple]) -> CorruptChunkError | None:
         for byte_getter, spec, *_ in batch_info:
             try:
                 data = await byte_getter.get(prototype=spec.prototype)
@@ -300,10 +304,11 @@ class LocatingCodecPipeline(BatchedCodecPipeline):
             try:
                 list(await self.decode_batch([(data, spec)]))
             except Exception as chunk_exc:  # noqa: BLE001 - this chunk is the one
-                _, words = _diagnose(self, len(data), spec, chunk_exc)
+                kind, words = _diagnose(self, len(data), spec, chunk_exc)
                 array, chunk = _parse_chunk_key(byte_getter.path)
                 attrs = await _root_attrs(byte_getter.store, spec.prototype)
-                return CorruptChunkError(_store_name(byte_getter.store), array, chunk, words, rerun_hint(attrs))
+                return CorruptChunkError(_store_name(byte_getter.store), array, chunk, words, rerun_hint(attrs),
+                                         kind)
         return None
 
 
@@ -370,7 +375,7 @@ def chunk_files_exist(array: zarr.Array, chunks: Sequence[tuple[int, ...]]) -> l
 #: was written. A chunk holding only the fill value is not stored by Zarr, so only arrays whose
 #: written chunks cannot be all fill value are listed (raw frames only with a black level > 0).
 WRITTEN_RULES: dict[str, list[tuple[str, str, tuple[int, ...]]]] = {
-    "btf-capture": [("raw", "written", (0, 1, 2)), ("dark_frames", "dark_written", (0,))],
+    "btf-capture": [("raw", "written", (0, 1, 2))],         # not dark frames: all-zero ones are accepted
     "btf-texture": [("btf", "written", (0,))],              # ingest (view) and resample (target view)
     "btf-texture/reconstruct": [("btf", "written", (1,))],  # btf reconstruct: one marker per band
     "btf-measurement": [("measured", "written", (0,))],
@@ -519,9 +524,7 @@ def verify_store(path: str | os.PathLike | zarr.Group) -> list[ChunkProblem]:
             try:
                 array[_chunk_region(array, chunk)]
             except CorruptChunkError as e:
-                kind = "truncated" if e.problem.startswith("truncated") else (
-                    "corrupt" if e.problem == _CHANGED or e.problem.startswith("wrong size") else "unreadable")
-                problems.append(ChunkProblem(name, array_name, chunk, kind, e.problem, hint))
+                problems.append(ChunkProblem(name, array_name, chunk, e.kind, e.problem, hint))
             except Exception as e:  # noqa: BLE001 - e.g. the pipeline was not installed
                 problems.append(ChunkProblem(name, array_name, chunk, "unreadable",
                                              f"does not decode ({type(e).__name__}: {e})", hint))

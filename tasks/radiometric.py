@@ -12,6 +12,12 @@ time: :func:`btfcore.radiometric.led_calibration` (a median over the view's
 texels) per view, then the median over views. The median of per-view
 medians is not the median over all samples, but it is as robust (a bad view
 or a few bad texels do not move it) and needs one chunk in memory.
+
+In the same pass the store is checked to be a white standard at all
+(:func:`btfcore.radiometric.white_texture_statistics`): flat in brightness
+and chromaticity under every LED, of one colour under an LED from every
+view. A store that is not (a leather BTF given as ``--white``) is refused
+before its gains calibrate anything (:data:`btfcore.radiometric.WHITE_TOLERANCES`).
 """
 
 from __future__ import annotations
@@ -26,7 +32,13 @@ from typing import Any
 import numpy as np
 import zarr
 
-from btfcore.radiometric import as_colour_matrix, led_calibration
+from btfcore.radiometric import (
+    as_colour_matrix,
+    led_calibration,
+    white_standard_problems,
+    white_standard_statistics,
+    white_texture_statistics,
+)
 
 WHITE_ALBEDO = 0.99
 
@@ -95,31 +107,77 @@ def led_gains_from_white(white_path: str | os.PathLike, albedo: float = WHITE_AL
         Median over views of :func:`btfcore.radiometric.led_calibration`.
     info : dict
         Provenance: the store, its ingest hash, the albedo, the number of
-        views and the largest relative spread of a gain across views.
+        views, the largest relative spread of a gain across views and the
+        white-standard statistics (``white_check``).
 
     Raises
     ------
     ValueError
-        On a store that is not a finished, uncorrected ingest, or (from
+        On a store that is not a finished, uncorrected ingest, (from
         ``led_calibration``) NaN/Inf, an LED below the horizon or a
-        non-positive gain; the message names the store, the view and the LED.
+        non-positive gain (the message names the store, the view and the
+        LED), or a store that is not a white standard: a statistic of
+        :func:`btfcore.radiometric.white_standard_statistics` above its
+        tolerance (the message names the store, the statistic, its value and
+        the tolerance).
     """
     group = _open_white(white_path)
     n_turn, n_cam, n_leds = group.attrs["turntable_cameras_leds"]
     btf, light_dir = group["btf"], group["light_dir"][...]
-    per_view = np.empty((n_turn * n_cam, n_leds, 3))
-    for v in range(n_turn * n_cam):
+    n_views = n_turn * n_cam
+    per_view = np.empty((n_views, n_leds, 3))
+    spread, chroma_spread = np.empty((n_views, n_leds)), np.empty((n_views, n_leds))
+    chromaticity = np.empty((n_views, n_leds, btf.shape[-1]))
+    for v in range(n_views):
         rows = slice(v * n_leds, (v + 1) * n_leds)
+        chunk = btf[rows]                                   # one view: the gains and the check in one read
         try:
-            per_view[v] = led_calibration(btf[rows], light_dir[rows], albedo)
+            per_view[v] = led_calibration(chunk, light_dir[rows], albedo)
         except ValueError as exc:
             raise ValueError(f"{white_path}: btf rows {rows.start}-{rows.stop - 1} (turntable {v // n_cam}, "
                              f"camera {v % n_cam}): {exc}") from None
+        spread[v], chroma_spread[v], chromaticity[v] = white_texture_statistics(chunk)
+    stats = white_standard_statistics(spread, chroma_spread, chromaticity)
+    check_white_standard(white_path, stats)
     gain = np.median(per_view, axis=0)
-    spread = float(np.max(np.abs(per_view - gain) / gain))
+    gain_spread = float(np.max(np.abs(per_view - gain) / gain))
     info = {"white_standard": str(white_path), "white_ingest_hash": group.attrs.get("ingest_hash"),
-            "albedo": float(albedo), "views": int(n_turn * n_cam), "max_relative_spread_over_views": spread}
+            "albedo": float(albedo), "views": int(n_views), "max_relative_spread_over_views": gain_spread,
+            "white_check": {name: round(value, 6) for name, value in stats.items()}}
     return gain, info
+
+
+_STATISTIC_WORDS = {
+    "brightness_spread": "its texels are not equally bright under an LED",
+    "chromaticity_spread": "its texels are not of one colour under an LED",
+    "view_chromaticity_deviation": "the colour of an LED relative to the others changes with the view",
+}
+
+
+def check_white_standard(white_path: str | os.PathLike, stats: dict[str, float]) -> None:
+    """Refuse a ``--white`` store whose statistics are not a white standard's.
+
+    Parameters
+    ----------
+    white_path : path
+        The store (named in the message).
+    stats : dict
+        From :func:`btfcore.radiometric.white_standard_statistics`.
+
+    Raises
+    ------
+    ValueError
+        One line naming the store, each statistic above its tolerance of
+        :data:`btfcore.radiometric.WHITE_TOLERANCES` with its value, and what
+        to give instead.
+    """
+    problems = white_standard_problems(stats)
+    if problems:
+        what = "; ".join(f"{name} = {value:.4g} > {tol:g} ({_STATISTIC_WORDS.get(name, name)})"
+                         for name, value, tol in problems)
+        raise ValueError(f"{white_path}: not a white standard: {what}; give --white the ingest of a white-standard "
+                         "capture (a flat, neutral Lambertian target; docs/reconstruction.md, \"Is the white "
+                         "standard a white standard?\")")
 
 
 def read_colour_matrix(path: str | os.PathLike) -> np.ndarray:

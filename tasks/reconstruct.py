@@ -180,9 +180,40 @@ def _check_sampling(model: zarr.Group, data: zarr.Group, data_path: Any) -> None
                          "this device's sampling")
 
 
+def _basis_names(basis: str) -> tuple[str, ...]:
+    """The model groups (under ``classes/<cls>/``) a ``--basis`` reads."""
+    return ("als",) if basis == "als" else (basis, "u_y", "v_y")
+
+
+def _check_class(model: zarr.Group, cls: str, names: tuple[str, ...], model_path: Any) -> None:
+    """``--class`` must name one of the model's classes, exactly (so never a path into the store, such as
+    ``../../etc``), and that class must hold the bases ``names``.
+
+    Raises
+    ------
+    ValueError
+        One line naming the model, the class and the valid classes (or the
+        class's bases).
+    """
+    classes = sorted(model["classes"].group_keys()) if "classes" in model else []
+    if cls not in classes:
+        kind = ("is a path, not a class name" if any(c in cls for c in "/\\") or cls in (".", "..")
+                else "is not a class of this model")
+        raise ValueError(f"{model_path}: --class {cls!r} {kind}; choose one of: "
+                         f"{', '.join(classes) or 'none (the model has no class bases; rebuild it with btf build-db)'}")
+    group = model[f"classes/{cls}"]
+    missing = [n for n in names if n not in group]
+    if missing:
+        have = sorted(group.group_keys())
+        raise ValueError(f"{model_path}: class {cls} has no basis {', '.join(missing)} (it has: "
+                         f"{', '.join(have) or 'none'}); choose --basis from {', '.join(RECONSTRUCT_BASES)} by what the "
+                         "class has, or build the model with that basis")
+
+
 def _basis(model: zarr.Group, cls: str, name: str, k: int | None, model_path: Any) -> tuple[np.ndarray, np.ndarray]:
     from tasks.model import read_basis
 
+    _check_class(model, cls, (name,), model_path)             # a class name never indexes the store as a path
     where = f"classes/{cls}/{name}"
     try:
         fit = read_basis(model, where)
@@ -430,7 +461,8 @@ def _correction(data: zarr.Group, kind: str, G: np.ndarray | sparse.csr_matrix |
 def check_inputs(in_path: str | os.PathLike, model_path: str | os.PathLike, settings: ReconstructSettings,
                  calibration: Any = None) -> None:
     """Every check of :func:`reconstruct_store` that needs no cluster (``btf reconstruct`` runs it before one
-    starts): the input and model stores, their light/view samplings, the basis and the solve itself.
+    starts): the input and model stores, the class (one of the model's, by name) and its bases, their
+    light/view samplings, the basis and the solve itself.
 
     Raises
     ------
@@ -439,12 +471,15 @@ def check_inputs(in_path: str | os.PathLike, model_path: str | os.PathLike, sett
     """
     data, kind = read_input(in_path)
     model = open_model(model_path)
+    _check_class(model, settings.cls, (), model_path)
     _check_sampling(model, data, in_path)
     n_turn, n_cam, n_leds = data.attrs["turntable_cameras_leds"]
     G = _measurement_G(data, kind)
     correction = _correction(data, kind, G, calibration, in_path)
     if settings.method != "thresholded":                  # its operator needs a pass over the data
         build_operators(settings, model, G, n_turn * n_cam * n_leds, None, model_path, correction)
+    else:                                                 # but its basis must be there
+        _check_class(model, settings.cls, _basis_names(settings.basis), model_path)
 
 
 def reconstruct_hash(data: zarr.Group, model: zarr.Group, settings: ReconstructSettings,
@@ -526,6 +561,7 @@ def reconstruct_store(in_path: str | os.PathLike, model_path: str | os.PathLike,
     start = time.perf_counter()
     data, kind = read_input(in_path)
     model = open_model(model_path)
+    _check_class(model, settings.cls, (), model_path)   # before a store path uses the class name
     _check_sampling(model, data, in_path)
     out = Path(out_path)
     key = reconstruct_hash(data, model, settings, band_rows, calibration)

@@ -1067,8 +1067,10 @@ def _validate_group(
     return problems
 
 
-#: Frame arrays whose chunks a resume marker says were written: ``array -> (marker, marker axes)``.
-_MARKED = {"raw": ("written", "(t, c, i)"), "dark_frames": ("dark_written", "(c)")}
+#: Frame arrays whose chunks a resume marker says were written: ``array -> (marker, marker axes)``. Dark
+#: frames are not listed: all-zero dark frames are accepted input (below the black level), and Zarr does
+#: not store an all-zero chunk.
+_MARKED = {"raw": ("written", "(t, c, i)")}
 
 
 def _check_chunk_files(group: zarr.Group, data: Mapping[str, np.ndarray], attrs: Mapping[str, Any],
@@ -1076,9 +1078,10 @@ def _check_chunk_files(group: zarr.Group, data: Mapping[str, np.ndarray], attrs:
     """A frame chunk whose marker says written must have its file: Zarr reads a missing chunk as zeros,
     which ingest would take for an unusable bracket. One ``stat`` per written bracket (local stores only;
     ``btf validate --deep`` lists the chunks of any store). With ``black_level`` 0 an all-zero bracket is
-    possible and Zarr does not store it, so nothing is checked then."""
+    possible and Zarr does not store it, so nothing is checked then (above a black level of 0 no sensor
+    gives an all-zero bracket)."""
     black = attrs.get("black_level")
-    if not isinstance(black, (int, float)) or black <= 0 or _is_url(getattr(group.store, "root", "://")):
+    if not isinstance(black, (int, float)) or black <= 0 or getattr(group.store, "root", None) is None:
         return
     for name, (marker_name, axes) in _MARKED.items():
         marker, arr = data.get(marker_name), group.get(name)
@@ -1716,7 +1719,7 @@ class CaptureStore:
             The bracket's chunk fails its checksum or is truncated, or its file is missing although
             ``written[t, c, i]`` marks it written (naming the store, array and chunk).
         """
-        if int(self.group["written"][t, c, i]) == 1 and int(self.meta.black_level or 0) > 0:
+        if int(self.group["written"][t, c, i]) == 1 and float(self.meta.black_level or 0) > 0:
             chunk = (int(t), int(c), int(i), 0, 0, 0)
             if not chunk_files_exist(self.raw, [chunk])[0]:
                 raise missing_problem(self.path, "raw", chunk, "written", chunk[:3],

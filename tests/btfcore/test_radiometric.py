@@ -5,9 +5,18 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from btfcore.radiometric import apply_colour_matrix, apply_led_calibration, fit_colour_matrix, led_calibration
+from btfcore.radiometric import (
+    WHITE_TOLERANCES,
+    apply_colour_matrix,
+    apply_led_calibration,
+    fit_colour_matrix,
+    led_calibration,
+    white_standard_problems,
+    white_standard_statistics,
+    white_texture_statistics,
+)
 from btfcore.simulate.devices import get_device
-from btfcore.simulate.materials import make_material, white_standard
+from btfcore.simulate.materials import MATERIAL_CLASSES, make_material, white_standard
 from btfcore.simulate.render import horizon_map, render_view
 
 SHAPE = (16, 16)
@@ -143,3 +152,66 @@ def test_bad_input(tiny):
         apply_colour_matrix(np.ones((2, 3)), np.eye(4))
     with pytest.raises(ValueError, match="3 channels"):
         apply_colour_matrix(np.ones((2, 4)), np.eye(3))
+
+
+# --------------------------------------------------------------------------- is it a white standard? (issue 13)
+
+ALL_VIEWS = [(t, c) for t in range(3) for c in range(4)]
+
+
+def _white_stats(measured):
+    """The white-standard statistics of (n_leds, n_views, H, W, 3), one view at a time as the store is read."""
+    per_view = [white_texture_statistics(measured[:, v]) for v in range(measured.shape[1])]
+    return white_standard_statistics(*(np.array(z) for z in zip(*per_view)))
+
+
+def test_a_real_domes_white_standard_passes_the_check(tiny):
+    """LED colours, per-camera colours, a +-8 % near-field fall-off, noise, specks and invalid texels are
+    what a real white standard shows: none of them fails it."""
+    _, white = _capture(white_standard(SHAPE), tiny, ALL_VIEWS)
+    assert white_standard_problems(_white_stats(white)) == []
+    rng = np.random.default_rng(3)
+    v, u = np.mgrid[-1:1:16j, -1:1:16j]
+    fall_off = (1 + 0.08 * (0.6 * u + 0.8 * v))[None, None, :, :, None]
+    camera = np.exp(rng.normal(0, 0.05, (1, len(ALL_VIEWS), 1, 1, 3)))
+    real = white * fall_off * camera * (1 + 0.01 * rng.standard_normal(white.shape))
+    real[rng.random(real.shape[:-1]) < 0.01] *= 20.0                 # specks
+    real[:, :, 5, 7] = np.nan                                       # an invalid texel in every texture
+    real[2, 0] = np.nan                                             # and a whole invalid texture
+    stats = _white_stats(real)
+    assert white_standard_problems(stats) == [], stats
+    for name, value in stats.items():                               # with a margin
+        assert value < WHITE_TOLERANCES[name] / 2, (name, value)
+
+
+@pytest.mark.parametrize("cls", MATERIAL_CLASSES)
+def test_a_material_is_not_a_white_standard(tiny, sources, cls):
+    maps = make_material(cls, 3, SHAPE, sources)
+    _, measured = _capture(maps, tiny, ALL_VIEWS, horizon_map(maps.height))
+    problems = white_standard_problems(_white_stats(measured))
+    assert "brightness_spread" in [p[0] for p in problems], problems
+    name, value, tol = next(p for p in problems if p[0] == "brightness_spread")
+    assert value > 2 * tol and tol == WHITE_TOLERANCES[name]
+
+
+def test_white_statistics_of_invalid_textures():
+    """A texture without a valid texel (or black) is no white standard: inf, which fails; the colour
+    statistic is not fooled by a coloured target under one LED colour."""
+    white = np.ones((4, 8, 8, 3), np.float32)
+    white[1] = np.nan
+    white[2] = 0.0
+    spread, chroma_spread, chromaticity = white_texture_statistics(white)
+    np.testing.assert_array_equal(spread, [0, np.inf, np.inf, 0])
+    np.testing.assert_array_equal(chroma_spread, [0, np.inf, np.inf, 0])
+    np.testing.assert_allclose(chromaticity[[0, 3]], 1 / 3)
+    stats = white_standard_statistics(spread[None], chroma_spread[None], chromaticity[None])
+    assert [p[0] for p in white_standard_problems(stats)] == ["brightness_spread", "chromaticity_spread"]
+    nothing = white_standard_statistics(np.full((1, 2), np.inf), np.full((1, 2), np.inf), np.full((1, 2, 3), np.nan))
+    assert len(white_standard_problems(nothing)) == 3
+    # two colours side by side under every LED: flat in brightness, not in colour
+    patches = np.ones((4, 8, 8, 3), np.float32)
+    patches[:, :, :4] = [1.5, 1.0, 0.5]
+    spread, chroma_spread, _ = white_texture_statistics(patches)
+    assert (chroma_spread > 0.5).all()
+    with pytest.raises(ValueError, match=r"white must be \(n_leds, h, w, C\)"):
+        white_texture_statistics(white[0])

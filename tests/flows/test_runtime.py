@@ -6,7 +6,7 @@ import os
 
 import pytest
 
-from flows.runtime import DEFAULT_PROFILE, RuntimeUnavailable, dask_client, load_profile
+from flows.runtime import DEFAULT_PROFILE, ProfileError, exposure_warnings, load_profile
 
 
 def _worker_environ(keys):
@@ -48,17 +48,158 @@ def test_default_profile_is_a_two_worker_local_cluster():
 
 
 def test_profile_errors_name_the_file(tmp_path):
-    with pytest.raises(RuntimeUnavailable, match="does not exist"):
+    with pytest.raises(ProfileError, match="does not exist"):
         load_profile(tmp_path / "missing.yaml")
     bad = tmp_path / "bad.yaml"
     bad.write_text("cluster: [unclosed\n")
-    with pytest.raises(RuntimeUnavailable, match=r"bad\.yaml is not valid YAML"):
+    with pytest.raises(ProfileError, match=r"bad\.yaml is not valid YAML"):
         load_profile(bad)
     slurm = tmp_path / "slurm.yaml"
     slurm.write_text("cluster: {kind: slurm}\n")
-    with pytest.raises(RuntimeUnavailable, match=r"slurm\.yaml: cluster kind 'slurm' is not supported yet"):
-        with dask_client(load_profile(slurm)):
-            pass
+    # refused when loaded, before Prefect or a cluster starts (it used to be refused by dask_client)
+    with pytest.raises(ProfileError, match=r"slurm\.yaml: cluster kind 'slurm' is not supported yet"):
+        load_profile(slurm)
+    assert issubclass(ProfileError, ValueError)  # the CLI's bad input
+
+
+@pytest.mark.parametrize("text, message", [
+    # a typo used to reach LocalCluster(**spec), after Prefect had started
+    ("cluster: {kind: local, n_worker: 4}\n",
+     "unknown key 'cluster.n_worker' for cluster kind 'local'; allowed keys: kind, n_workers, threads_per_worker, "
+     "memory_limit, processes, dashboard, host, dashboard_address"),
+    ("cluster: {kind: local, scheduler_kwargs: {dashboard: true}}\n", "unknown key 'cluster.scheduler_kwargs'"),
+    ("prefect: {api_url: null, startup_timeout: 30}\n",
+     "unknown key 'prefect.startup_timeout'; allowed keys: api_url, startup_timeout_s"),
+    ("clusters: {kind: local}\n", "unknown section 'clusters'; allowed sections: cluster, prefect"),
+    ("cluster: {n_workers: two}\n", "'cluster.n_workers' must be an integer, not 'two' (str)"),
+    ("cluster: {n_workers: true}\n", "'cluster.n_workers' must be an integer, not True (bool)"),
+    ("cluster: {n_workers: 0}\n", "'cluster.n_workers' must be at least 1, not 0"),
+    ("cluster: {dashboard: 'yes please'}\n", "'cluster.dashboard' must be true or false"),
+    ("cluster: {dashboard_address: 8787}\n", "'cluster.dashboard_address' must be a string, not 8787 (int)"),
+    ("cluster: {memory_limit: 4 apples}\n", "'cluster.memory_limit' must be a size like 4GiB"),
+    ("prefect: {startup_timeout_s: soon}\n", "'prefect.startup_timeout_s' must be a number, not 'soon' (str)"),
+    ("prefect: {api_url: 8080}\n", "'prefect.api_url' must be a string or null"),
+    ("cluster: [local]\n", "'cluster' must be a mapping of keys"),
+    # safe_load refuses python tags; the message used to span four lines of PyYAML's marks
+    ("cluster: !!python/object/apply:os.system ['touch pwned']\n",
+     "is not valid YAML (line 1, column 10: could not determine a constructor for the tag "
+     "'tag:yaml.org,2002:python/object/apply:os.system')"),
+])
+def test_a_profile_is_validated_against_its_cluster_kind_when_loaded(tmp_path, text, message):
+    path = tmp_path / "profile.yaml"
+    path.write_text(text)
+    with pytest.raises(ProfileError) as info:
+        load_profile(path)
+    assert str(info.value).startswith(f"execution profile {path}")
+    assert message in str(info.value)
+    assert "\n" not in str(info.value)
+
+
+def test_only_a_profile_that_binds_beyond_loopback_without_tls_is_warned(tmp_path):
+    import dask
+
+    def profile(text):
+        path = tmp_path / "p.yaml"
+        path.write_text(text)
+        return load_profile(path)
+
+    assert exposure_warnings(load_profile(DEFAULT_PROFILE)) == []
+    assert exposure_warnings(profile("cluster: {dashboard: true}\n")) == []      # 127.0.0.1:8787
+    assert exposure_warnings(profile("cluster: {host: localhost, dashboard_address: '[::1]:8787'}\n")) == []
+    public = profile("cluster: {host: 0.0.0.0, dashboard: true}\n")
+    lines = exposure_warnings(public)
+    assert len(lines) == 2 and all("\n" not in line and str(public.path) in line for line in lines)
+    assert "scheduler and workers listen on 0.0.0.0 (cluster.host) without TLS" in lines[0]
+    assert "HTTP server" in lines[1] and "0.0.0.0:8787" in lines[1]
+    dashboard = exposure_warnings(profile("cluster: {dashboard: true, dashboard_address: ':8787'}\n"))
+    assert len(dashboard) == 1 and "listens on :8787 without TLS" in dashboard[0]
+    with dask.config.set({"distributed.comm.require-encryption": True,
+                          "distributed.scheduler.dashboard.tls.cert": "cert.pem"}):
+        assert exposure_warnings(public) == []
+    assert len(exposure_warnings(profile("cluster: {host: 'tls://0.0.0.0'}\n"))) == 1   # its HTTP server has no TLS
+
+
+def test_a_failed_run_prints_no_prefect_traceback_unless_asked(runtime_session, monkeypatch, capfd):
+    """Prefect logged a failed task and flow run with their tracebacks before the CLI's one-line message."""
+    from prefect import flow, task
+
+    from flows.runtime import quiet_logs
+
+    monkeypatch.setenv("PREFECT_API_URL", runtime_session[1])
+    monkeypatch.delenv("PREFECT_LOGGING_LEVEL", raising=False)
+    quiet_logs()                                           # as a `btf` run starts: the user set no level
+
+    @task(name="bad-input-stage")
+    def stage():
+        raise ValueError("capture.zarr: exposure_time[3] is negative")
+
+    @flow(name="bad-input-flow")
+    def run():
+        stage()
+
+    capfd.readouterr()
+    with pytest.raises(ValueError, match="negative"):
+        run()
+    err = capfd.readouterr().err
+    assert "Traceback" not in err and "Finished in state Failed" not in err, err
+    monkeypatch.setenv("PREFECT_LOGGING_LEVEL", "INFO")    # asked for: Prefect's report is kept
+    with pytest.raises(ValueError, match="negative"):
+        run()
+    assert "Traceback" in capfd.readouterr().err
+
+
+_LISTENING_RUN = """
+import dataclasses, json, sys, time
+from urllib.parse import urlsplit
+import psutil
+from flows.runtime import DEFAULT_PROFILE, load_profile, runtime
+
+def listening():
+    me = psutil.Process()
+    return [[proc.pid, conn.laddr.ip, conn.laddr.port]
+            for proc in [me, *me.children(recursive=True)]
+            for conn in proc.net_connections(kind="inet") if conn.status == psutil.CONN_LISTEN]
+
+if __name__ == "__main__":
+    default = load_profile(DEFAULT_PROFILE)          # the default profile, on one worker to save time
+    profile = dataclasses.replace(default, cluster={**default.cluster, "n_workers": 1})
+    with runtime(profile) as (_p, url, client):
+        sockets = listening()
+        busy = client.submit(time.sleep, 60, pure=False)     # still running when the run ends
+        deadline = time.monotonic() + 30
+        while not any(client.processing().values()) and time.monotonic() < deadline:
+            time.sleep(0.1)
+    print(json.dumps({"prefect_port": urlsplit(url).port, "sockets": sockets}))
+"""
+
+
+def test_a_default_run_listens_on_loopback_only_and_ends_quietly(tmp_path):
+    """Every listening socket of a default run (temporary Prefect server, scheduler and its HTTP server,
+    nanny, worker) binds the loopback: the scheduler's HTTP server (/metrics, worker addresses, logs)
+    used to listen on 0.0.0.0 even without the dashboard. And the run ends without Dask's shutdown
+    warnings: a worker still busy when the run ends used to print "Worker process still alive after
+    4.0 seconds, killing"."""
+    import json
+    import subprocess
+    import sys
+
+    script = tmp_path / "listening.py"
+    script.write_text(_LISTENING_RUN)
+    root = DEFAULT_PROFILE.parents[1]
+    env = {k: v for k, v in os.environ.items() if k not in ("PREFECT_API_URL", "BTF_CLUSTER_CONFIG")}
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(root), env.get("PYTHONPATH")]))
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=240, env=env,
+                         cwd=str(tmp_path))
+    assert out.returncode == 0, out.stderr[-3000:]
+    report = json.loads(out.stdout.strip().splitlines()[-1])
+    sockets = report["sockets"]
+    assert len({pid for pid, _, _ in sockets}) == 3, sockets     # this process, the Prefect server, a worker
+    assert report["prefect_port"] in {port for _, _, port in sockets}
+    assert len(sockets) >= 6, sockets        # Prefect, scheduler, its HTTP server, nanny, worker, worker HTTP
+    exposed = [s for s in sockets if s[1] not in ("127.0.0.1", "::1")]
+    assert exposed == [], f"listening beyond loopback: {exposed}"
+    assert "still alive" not in out.stderr and "Traceback" not in out.stderr, out.stderr[-3000:]
+    assert "WARNING" not in out.stderr, out.stderr[-3000:]
 
 
 def test_a_finished_run_leaves_the_environment_as_it_was(tmp_path):

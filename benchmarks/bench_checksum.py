@@ -1,0 +1,201 @@
+"""Benchmark: what the chunk checksums (CRC32C, tasks/integrity.py) cost the ingest and the model database.
+
+Every array the pipeline writes carries Zarr v3's ``crc32c`` codec (issue 13). This measures, in one
+run with the contenders interleaved, the same work with and without the checksum:
+
+* ``ingest``: ``tasks.ingest.ingest_capture`` on the default LocalCluster (2 workers x 1 thread) of a
+  simulated bonn-dome2 capture, first turntable position, one leather (11 views x 198 single-LED
+  brackets of 4 raw frames of 280x288, 1.4 GB raw): once from the capture as written (checksummed) into
+  a checksummed BTF store, once from a copy of its arrays without checksums (the truth group left out,
+  which the ingest does not read) into a BTF store without them (``tasks.integrity.checksummed``
+  patched in this process, where the output store is created); wall seconds and the CPU seconds of
+  the workers. Bar: the checksums cost under 5 % of the ingest's throughput;
+* ``model``: a synthetic btf-texture store (``bench_model_svd.write_store``: 11 views x 198 LEDs =
+  2,178 rows x 128 x 128 x 3 texels, float32, 428 MB), written with and without checksums; per
+  variant the write, one streaming pass of ``tasks.model.blocks`` (what the basis fits read) and a
+  randomized truncated SVD of rank ``--k`` over that stream (``btfcore.truncated_svd``), each as CPU
+  seconds of this process (all its threads: robust to other work on the machine) and wall seconds;
+* the codec's own rates on one raw chunk (645 KB): ``google_crc32c.value`` and the ``np.append`` copy
+  that ``zarr.codecs.Crc32cCodec`` makes to put the 4 checksum bytes after the chunk.
+
+Usage: ``python benchmarks/bench_checksum.py [--repeats N] [--capture STORE] [--skip-ingest] [--skip-model]``
+(about 2 minutes on 2 cores; progress lines go to stderr, the JSON result to stdout).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from _measure import best_seconds, log
+
+
+def set_checksums(enabled: bool) -> None:
+    """Create arrays with (the pipeline's) or without (the old) checksums in this process."""
+    import tasks.integrity as integrity
+
+    original = integrity.__dict__.setdefault("_bench_checksummed", integrity.checksummed)
+    integrity.checksummed = original if enabled else (lambda compressors=None: list(compressors or []))
+
+
+def copy_without_checksums(src: Path, dst: Path) -> None:
+    """The arrays of a capture store (not its truth group) re-encoded without checksums, chunk by chunk."""
+    import zarr
+
+    source = zarr.open_group(str(src), mode="r", zarr_format=3)
+    target = zarr.open_group(str(dst), mode="w", zarr_format=3)
+    for name, node in sorted(source.members(max_depth=None)):
+        if name == "truth" or name.startswith("truth/"):
+            continue
+        if isinstance(node, zarr.Group):
+            target.require_group(name).attrs.put(dict(node.attrs))
+            continue
+        dims = getattr(node.metadata, "dimension_names", None)
+        out = target.create_array(name, shape=node.shape, dtype=node.dtype, chunks=node.chunks,
+                                  fill_value=node.fill_value, compressors=None, dimension_names=dims)
+        for idx in np.ndindex(*node.cdata_shape):
+            region = tuple(slice(i * c, min((i + 1) * c, n)) for i, c, n in zip(idx, node.chunks, node.shape))
+            out[region] = node[region]
+    attrs = dict(source.attrs)
+    target.attrs.put(attrs)
+
+
+def codec_rates() -> dict[str, float]:
+    """GB/s of the checksum and of the codec's np.append copy on one raw chunk (4 x 280 x 288 uint16)."""
+    import google_crc32c
+
+    chunk = np.random.default_rng(0).integers(0, 4096, (4, 280, 288), dtype=np.uint16).view(np.uint8).reshape(-1)
+    tail = np.zeros(4, np.uint8)
+    crc = best_seconds(lambda: google_crc32c.value(chunk), 20)
+    append = best_seconds(lambda: np.append(chunk, tail), 20)
+    return {"chunk_bytes": int(chunk.nbytes), "crc32c_gb_per_s": round(chunk.nbytes / crc / 1e9, 2),
+            "np_append_gb_per_s": round(chunk.nbytes / append / 1e9, 2)}
+
+
+def bench_ingest(args, scratch: Path) -> dict:
+    from flows.runtime import runtime
+    from tasks.ingest import ingest_capture
+    from tasks.simulate import SimulationConfig, simulate_database
+    from tasks.store import open_capture_store
+
+    config = SimulationConfig(device="bonn-dome2", n_materials=1, seed=0, classes=("leather",), n_turntable=1)
+    runs: dict[bool, list[float]] = {True: [], False: []}
+    cpu: dict[bool, list[float]] = {True: [], False: []}
+    with runtime() as (_profile, _url, client):
+        set_checksums(True)
+        log("simulating the capture" if not args.capture else f"reusing {args.capture}")
+        capture = Path(args.capture or simulate_database(config, scratch / "db", client).stores[0])
+        plain = scratch / "plain-capture.zarr"
+        log("copying it without checksums")
+        copy_without_checksums(capture, plain)
+        raw_bytes = open_capture_store(capture).raw.nbytes
+        inputs = {True: capture, False: plain}
+        for rep in range(args.repeats):
+            for enabled in ((True, False) if rep % 2 == 0 else (False, True)):   # interleaved, order alternating
+                set_checksums(enabled)
+                out = scratch / f"btf-{rep}-{enabled}.zarr"
+                cpu0 = sum(client.run(time.process_time).values())
+                start = time.perf_counter()
+                ingest_capture(inputs[enabled], out, client)
+                runs[enabled].append(time.perf_counter() - start)
+                cpu[enabled].append(sum(client.run(time.process_time).values()) - cpu0)
+                shutil.rmtree(out)
+                log(f"ingest {'with' if enabled else 'without'} checksums: {runs[enabled][-1]:.2f} s, "
+                    f"workers' CPU {cpu[enabled][-1]:.2f} s")
+        set_checksums(True)
+    med = {k: float(np.median(v)) for k, v in runs.items()}
+    med_cpu = {k: float(np.median(v)) for k, v in cpu.items()}
+    return {
+        "data": "bonn-dome2, 1 turntable position, 1 leather, single-LED",
+        "raw_gb": round(raw_bytes / 1e9, 3),
+        "with_checksums_s": [round(s, 2) for s in runs[True]],
+        "without_checksums_s": [round(s, 2) for s in runs[False]],
+        "median_with_mb_per_s": round(raw_bytes / 1e6 / med[True], 1),
+        "median_without_mb_per_s": round(raw_bytes / 1e6 / med[False], 1),
+        "throughput_cost": round(1.0 - med[False] / med[True], 4),
+        "with_checksums_worker_cpu_s": [round(s, 2) for s in cpu[True]],
+        "without_checksums_worker_cpu_s": [round(s, 2) for s in cpu[False]],
+        "cpu_cost": round(1.0 - med_cpu[False] / med_cpu[True], 4),
+        "bar": "< 5 % of the ingest's throughput",
+    }
+
+
+def bench_model(args, scratch: Path) -> dict:
+    from bench_model_svd import N_LEDS, factors, write_store
+
+    from btfcore.truncated_svd import truncated_svd
+    from tasks.model import blocks
+
+    n_lv, h = args.views * N_LEDS, args.texture
+    n_tx = h * h * 3
+    U, make_V = factors(n_lv, n_tx, 256, 0)
+    V = make_V()
+    s = np.arange(1, 257, dtype=np.float64) ** -0.75
+    stores = {True: scratch / "with.zarr", False: scratch / "without.zarr"}
+    figures: dict[str, dict[bool, list[float]]] = {
+        name: {True: [], False: []} for name in ("write_cpu_s", "pass_s", "pass_cpu_s", "svd_s", "svd_cpu_s")}
+    for rep in range(args.repeats):
+        for enabled in ((True, False) if rep % 2 == 0 else (False, True)):
+            set_checksums(enabled)
+            shutil.rmtree(stores[enabled], ignore_errors=True)
+            start = time.process_time()
+            write_store(stores[enabled], U, V, s, h, h, N_LEDS, {"rep": rep})
+            figures["write_cpu_s"][enabled].append(time.process_time() - start)
+            start, wall = time.process_time(), time.perf_counter()
+            n_bytes = sum(b.nbytes for b in blocks(str(stores[enabled]), "als")())
+            figures["pass_cpu_s"][enabled].append(time.process_time() - start)
+            figures["pass_s"][enabled].append(time.perf_counter() - wall)
+            start, wall = time.process_time(), time.perf_counter()
+            truncated_svd(blocks(str(stores[enabled]), "als"), n_lv, args.k, "randomized", seed=0)
+            figures["svd_cpu_s"][enabled].append(time.process_time() - start)
+            figures["svd_s"][enabled].append(time.perf_counter() - wall)
+            log(f"model {'with' if enabled else 'without'}: " +
+                ", ".join(f"{k} {v[enabled][-1]:.2f}" for k, v in figures.items()))
+    set_checksums(True)
+    out: dict = {"data": f"synthetic btf-texture store, {n_lv} x {n_tx} float32 ({n_bytes / 1e9:.3f} GB)",
+                 "k": args.k}
+    for name, runs in figures.items():
+        med = {k: float(np.median(v)) for k, v in runs.items()}
+        out[name] = {"with": [round(x, 2) for x in runs[True]], "without": [round(x, 2) for x in runs[False]],
+                     "cost": round(1.0 - med[False] / med[True], 4)}
+    return out
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--repeats", type=int, default=3, help="interleaved rounds of each variant [default: 3]")
+    parser.add_argument("--capture", default=None, help="reuse this bonn-dome2 capture store instead of simulating")
+    parser.add_argument("--views", type=int, default=11, help="model store: views x 198 LEDs rows [default: 11]")
+    parser.add_argument("--texture", type=int, default=128, help="model store: texture side [default: 128]")
+    parser.add_argument("--k", type=int, default=64, help="model: rank of the truncated SVD [default: 64]")
+    parser.add_argument("--skip-ingest", action="store_true")
+    parser.add_argument("--skip-model", action="store_true")
+    args = parser.parse_args()
+    scratch = Path(tempfile.mkdtemp(prefix="bench-checksum-"))
+    load = {"start": round(os.getloadavg()[0], 2)}
+    result: dict = {"benchmark": "checksum", "date": time.strftime("%Y-%m-%d"),
+                    "machine": f"{platform.node()} {os.cpu_count()} cores",
+                    "command": "python " + " ".join(sys.argv), "codec": codec_rates()}
+    try:
+        if not args.skip_ingest:
+            result["ingest"] = bench_ingest(args, scratch)
+        if not args.skip_model:
+            result["model"] = bench_model(args, scratch)
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+        load["end"] = round(os.getloadavg()[0], 2)
+        result["load_average_1min"] = load
+    print(json.dumps(result, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,243 @@
+"""Chunk checksums (tasks/integrity.py): a changed, truncated or missing chunk is named, never read as numbers.
+
+Real Zarr v3 stores on disk, written by the pipeline's own writers; no cluster.
+"""
+
+from __future__ import annotations
+
+import ast
+import pickle
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zarr
+
+from flows.cli import EXIT_BAD_INPUT, main
+from tasks import integrity
+from tasks.integrity import CHECKSUM_NOTE, CorruptChunkError, create_array, has_checksums, verify_store
+from tasks.store import CaptureStore, create_capture_store, open_capture_store, validate_capture_store
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def flip_byte(path: Path, offset: int = 7) -> None:
+    """XOR one byte of a chunk file (the data, not the checksum at its end)."""
+    data = bytearray(path.read_bytes())
+    data[offset] ^= 0x5A
+    path.write_bytes(bytes(data))
+
+
+def chunk_file(store: Path, array: str, chunk: tuple[int, ...]) -> Path:
+    return store.joinpath(*array.split("/"), "c", *map(str, chunk))
+
+
+def write_capture(path: Path, *, black_level: int | None = None) -> Path:
+    """A complete single-turntable capture of the `tiny` dome (random frames), written by the store's writers."""
+    from dataclasses import replace
+
+    from tasks.simulate import SimulationConfig, capture_metadata, material_plan
+
+    config = SimulationConfig(device="tiny", n_materials=1, seed=1, classes=("leather",), n_turntable=1,
+                              texture_size=8)
+    meta = capture_metadata(config, material_plan(config)[0], config.build_device())
+    if black_level is not None:
+        meta = replace(meta, black_level=black_level)
+    store = create_capture_store(path, meta)
+    rng = np.random.default_rng(0)
+    rows, cols = meta.roi_shape
+    for t, c in store.pending_views():
+        frames = rng.integers(meta.black_level + 1, 4000, (store.n_illum, store.n_exp, rows, cols), dtype=np.uint16)
+        store.write_bracket(t, c, frames, np.tile(np.geomspace(1e-3, 1e-1, store.n_exp), (store.n_illum, 1)))
+    store.write_dark_frames(np.full((store.n_cam, store.n_dark, rows, cols), meta.black_level + 2, np.uint16))
+    store.mark_complete()
+    return path
+
+
+@pytest.fixture(scope="module")
+def capture_template(tmp_path_factory) -> Path:
+    return write_capture(tmp_path_factory.mktemp("integrity") / "capture.zarr")
+
+
+@pytest.fixture()
+def capture(capture_template, tmp_path) -> Path:
+    return Path(shutil.copytree(capture_template, tmp_path / "capture.zarr"))
+
+
+def validate(capsys, *args) -> tuple[int, str]:
+    code = main(["validate", *map(str, args)])
+    return code, capsys.readouterr().out
+
+
+# --------------------------------------------------------------------------- one home
+
+ZARR_CREATORS = {"create", "create_array", "array", "zeros", "ones", "full", "empty", "open_array", "from_array"}
+
+
+def test_every_array_is_created_through_the_checksum_helper():
+    """No module of tasks/ calls zarr's create_array itself: tasks.integrity.create_array is the one home."""
+    bad = []
+    for path in sorted((ROOT / "tasks").glob("*.py")):
+        if path.name == "integrity.py":
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if not isinstance(node, ast.Attribute):
+                continue
+            zarr_call = isinstance(node.value, ast.Name) and node.value.id == "zarr" and node.attr in ZARR_CREATORS
+            if node.attr in ("create_array", "create_dataset", "require_array") or zarr_call:
+                bad.append(f"{path.relative_to(ROOT)}:{node.lineno} .{node.attr}(")
+    assert not bad, "arrays created without tasks.integrity.create_array:\n" + "\n".join(bad)
+
+
+def test_the_helper_appends_crc32c_after_any_compressor(tmp_path):
+    from zarr.codecs import Crc32cCodec, ZstdCodec
+
+    group = zarr.open_group(str(tmp_path / "s.zarr"), mode="w", zarr_format=3)
+    plain = create_array(group, "plain", shape=(4,), dtype="f4", compressors=None)
+    packed = create_array(group, "packed", shape=(4,), dtype="f4", compressors=[ZstdCodec(level=1)])
+    assert plain.compressors == (Crc32cCodec(),)
+    assert isinstance(packed.compressors[0], ZstdCodec) and packed.compressors[-1] == Crc32cCodec()
+    assert len(integrity.checksummed([Crc32cCodec()])) == 1                  # never two checksums
+
+
+def test_every_array_of_a_capture_store_has_checksums(capture):
+    group = zarr.open_group(str(capture), mode="r")
+    arrays = [(name, a) for name, a in group.members(max_depth=None) if isinstance(a, zarr.Array)]
+    assert len(arrays) == 13 and all(has_checksums(a) for _, a in arrays), \
+        [name for name, a in arrays if not has_checksums(a)]
+
+
+def test_every_array_of_a_measurement_store_has_checksums(tmp_path):
+    from tasks.measurement import write_measurement
+
+    rng = np.random.default_rng(1)
+    G = np.eye(4, dtype=np.float32)
+    dirs = np.tile([0.0, 0.0, 1.0], (4, 1))
+    write_measurement(tmp_path / "m.zarr", rng.random((4, 3, 3, 3)), G, dirs, dirs, (1, 1, 4))
+    group = zarr.open_group(str(tmp_path / "m.zarr"), mode="r")
+    assert all(has_checksums(a) for _, a in group.arrays())
+    flip_byte(chunk_file(tmp_path / "m.zarr", "measured", (0, 0, 0, 0)))
+    [problem] = verify_store(tmp_path / "m.zarr")
+    assert (problem.array, problem.chunk, problem.kind) == ("measured", (0, 0, 0, 0), "corrupt")
+    assert "btf ingest --overwrite" in problem.hint
+
+
+# --------------------------------------------------------------------------- a changed byte
+
+
+def test_a_flipped_byte_is_named_by_the_reader_and_by_verify_store(capture):
+    flip_byte(chunk_file(capture, "raw", (0, 1, 3, 0, 0, 0)), offset=1000)
+    store = open_capture_store(capture)                        # the frames are not read when opening
+    with pytest.raises(CorruptChunkError) as ei:
+        store.read_bracket(0, 1, 3)
+    e = ei.value
+    assert (e.store, e.array, e.chunk) == (str(capture), "raw", (0, 1, 3, 0, 0, 0))
+    assert str(e).startswith(f"{capture}: array raw, chunk (0, 1, 3, 0, 0, 0): checksum mismatch (the chunk file "
+                             "was changed after it was written); write the capture again")
+    assert pickle.loads(pickle.dumps(e)).args == e.args          # crosses Dask / Prefect process boundaries
+    assert store.read_bracket(0, 1, 2)[0].shape[0] == store.n_exp   # the other brackets still read
+    [problem] = verify_store(capture)
+    assert (problem.array, problem.chunk, problem.kind) == ("raw", (0, 1, 3, 0, 0, 0), "corrupt")
+    assert str(problem) == str(e)
+
+
+def test_a_truncated_chunk_is_named_as_truncated(capture):
+    path = chunk_file(capture, "dark_frames", (1, 0, 0, 0))
+    size = path.stat().st_size
+    path.write_bytes(path.read_bytes()[:100])
+    with pytest.raises(CorruptChunkError, match=rf"array dark_frames, chunk \(1, 0, 0, 0\): truncated "
+                                                rf"\(100 of {size} bytes"):
+        CaptureStore(capture).dark_frames[1]
+    [problem] = verify_store(capture)
+    assert (problem.array, problem.chunk, problem.kind) == ("dark_frames", (1, 0, 0, 0), "truncated")
+
+
+def test_a_corrupt_small_array_is_a_validation_problem_not_a_crash(capture):
+    flip_byte(chunk_file(capture, "exposure_time", (0, 2, 0, 0)))
+    [problem] = validate_capture_store(capture)
+    assert (problem.array, problem.index) == ("exposure_time", "chunk (0, 2, 0, 0)")
+    assert problem.found.startswith("checksum mismatch")
+
+
+# --------------------------------------------------------------------------- a missing chunk
+
+
+def test_a_missing_chunk_of_a_written_bracket_is_named_not_read_as_zeros(capture):
+    chunk_file(capture, "raw", (0, 1, 3, 0, 0, 0)).unlink()
+    [problem] = validate_capture_store(capture)
+    assert (problem.array, problem.index) == ("raw", "chunk (0, 1, 3, 0, 0, 0)")
+    assert "chunk file missing" in problem.found and "damaged after writing" in problem.hint
+    store = CaptureStore(capture)                                 # unvalidated: the reader checks too
+    with pytest.raises(CorruptChunkError, match=r"array raw, chunk \(0, 1, 3, 0, 0, 0\): chunk file missing "
+                                                r"although written\[0, 1, 3\] = 1 says it was written"):
+        store.read_bracket(0, 1, 3)
+    [deep] = verify_store(capture)
+    assert (deep.array, deep.chunk, deep.kind) == ("raw", (0, 1, 3, 0, 0, 0), "missing")
+
+
+def test_an_unwritten_bracket_is_not_a_missing_chunk(tmp_path):
+    from tasks.simulate import SimulationConfig, capture_metadata, material_plan
+
+    config = SimulationConfig(device="tiny", n_materials=1, seed=1, classes=("leather",), n_turntable=1,
+                              texture_size=8)
+    create_capture_store(tmp_path / "c.zarr", capture_metadata(config, material_plan(config)[0],
+                                                              config.build_device()))
+    assert verify_store(tmp_path / "c.zarr") == []
+    assert not any("missing" in p.found for p in validate_capture_store(tmp_path / "c.zarr", require_complete=False))
+
+
+def test_with_black_level_0_an_absent_chunk_may_be_all_zeros(tmp_path):
+    """Zarr does not store a chunk that is all fill value; with black level 0 a black bracket is one."""
+    path = write_capture(tmp_path / "c.zarr", black_level=0)
+    chunk_file(path, "raw", (0, 0, 0, 0, 0, 0)).unlink()
+    assert validate_capture_store(path) == [] and verify_store(path) == []
+
+
+# --------------------------------------------------------------------------- btf validate
+
+
+def test_validate_deep_names_the_array_and_chunk(capture, capsys):
+    flip_byte(chunk_file(capture, "raw", (0, 2, 5, 0, 0, 0)))
+    code, out = validate(capsys, capture)
+    assert code == 0 and out.startswith(f"{capture}: valid"), out           # without --deep: frames unread
+    code, out = validate(capsys, capture, "--deep")
+    assert code == EXIT_BAD_INPUT, out
+    assert f"{capture}: 1 problem(s)" in out
+    assert "array raw, chunk (0, 2, 5, 0, 0, 0): checksum mismatch" in out and "note:" not in out
+
+
+def test_validate_deep_lists_each_missing_chunk_once(capture, capsys):
+    chunk_file(capture, "raw", (0, 1, 3, 0, 0, 0)).unlink()
+    code, out = validate(capsys, capture, "--deep")
+    assert code == EXIT_BAD_INPUT and f"{capture}: 1 problem(s)" in out, out
+    assert "array raw, chunk (0, 1, 3, 0, 0, 0): chunk file missing" in out
+
+
+def test_a_store_without_checksums_still_validates_and_says_so(tmp_path, capsys, monkeypatch):
+    """A store written before checksums were added: opened, validated, --deep checks what it can."""
+    monkeypatch.setattr(integrity, "checksummed", lambda compressors=None: [])
+    old = write_capture(tmp_path / "old.zarr")
+    monkeypatch.undo()
+    assert not has_checksums(zarr.open_group(str(old))["raw"])
+    open_capture_store(old)
+    for args in ([old], [old, "--deep"]):
+        code, out = validate(capsys, *args)
+        assert code == 0 and f"{old}: valid" in out and f"note: {CHECKSUM_NOTE}" in out, out
+    flip_byte(chunk_file(old, "raw", (0, 0, 1, 0, 0, 0)))
+    assert verify_store(old) == []                                 # undetectable without a checksum
+    path = chunk_file(old, "raw", (0, 0, 2, 0, 0, 0))
+    path.write_bytes(path.read_bytes()[:-10])
+    code, out = validate(capsys, old, "--deep")
+    assert code == EXIT_BAD_INPUT and "array raw, chunk (0, 0, 2, 0, 0, 0): truncated" in out, out
+
+
+def test_validate_opens_other_store_kinds(tmp_path, capsys):
+    from tasks.measurement import write_measurement
+
+    dirs = np.tile([0.0, 0.0, 1.0], (4, 1))
+    write_measurement(tmp_path / "m.zarr", np.ones((4, 2, 2, 3)), np.eye(4, dtype=np.float32), dirs, dirs, (1, 1, 4))
+    code, out = validate(capsys, tmp_path / "m.zarr")
+    assert code == 0 and "valid (btf-measurement store opened" in out and "note:" not in out, out
+    code, out = validate(capsys, tmp_path / "nothing.zarr", "--deep")
+    assert code == EXIT_BAD_INPUT and "nothing at" in out, out
