@@ -15,6 +15,11 @@ run with the contenders interleaved, the same work with and without the checksum
   variant the write, one streaming pass of ``tasks.model.blocks`` (what the basis fits read) and a
   randomized truncated SVD of rank ``--k`` over that stream (``btfcore.truncated_svd``), each as CPU
   seconds of this process (all its threads: robust to other work on the machine) and wall seconds;
+* ``io``: the ingest's own Zarr traffic alone, in this process, one thread: every view's raw read as
+  ``ingest_view`` reads it (``get_basic_selection`` into a reused buffer) from each capture, and every
+  view's textures written to a BTF-layout array as ``ingest_view`` writes them; fastest of
+  ``--repeats`` interleaved runs (other work on the machine only adds time), and the difference set
+  against the ingest's worker CPU seconds;
 * the codec's own rates on one raw chunk (645 KB): ``google_crc32c.value`` and the ``np.append`` copy
   that ``zarr.codecs.Crc32cCodec`` makes to put the 4 checksum bytes after the chunk.
 
@@ -80,6 +85,46 @@ def codec_rates() -> dict[str, float]:
             "np_append_gb_per_s": round(chunk.nbytes / append / 1e9, 2)}
 
 
+def bench_io(inputs: dict[bool, Path], repeats: int, scratch: Path) -> dict:
+    """Fastest seconds of the ingest's raw reads and texture writes with and without checksums."""
+    import zarr
+    from zarr.core.buffer import default_buffer_prototype
+
+    from tasks.ingest import band_rows
+
+    raw = {k: zarr.open_group(str(p), mode="r")["raw"] for k, p in inputs.items()}
+    n_turn, n_cam, n_illum, n_exp, rows, cols = raw[True].shape
+    views = [(t, c) for t in range(n_turn) for c in range(n_cam)]
+    buf = np.empty((n_illum, n_exp, rows, cols), np.uint16)
+    out = default_buffer_prototype().nd_buffer.from_numpy_array(buf)
+    h = w = 128
+    textures = np.random.default_rng(0).random((n_illum, h, w, 3), dtype=np.float32)
+    read: dict[bool, list[float]] = {True: [], False: []}
+    write: dict[bool, list[float]] = {True: [], False: []}
+    for rep in range(max(repeats, 5)):
+        for enabled in ((True, False) if rep % 2 == 0 else (False, True)):
+            start = time.perf_counter()
+            for t, c in views:
+                raw[enabled].get_basic_selection((t, c), out=out)
+            read[enabled].append(time.perf_counter() - start)
+            set_checksums(enabled)
+            from tasks.integrity import create_array
+            group = zarr.open_group(str(scratch / "io.zarr"), mode="w", zarr_format=3)
+            btf = create_array(group, "btf", shape=(len(views) * n_illum, h, w, 3), dtype="float32",
+                               chunks=(n_illum, band_rows(n_illum, h, w), w, 3), fill_value=0.0, compressors=None)
+            start = time.perf_counter()
+            for k in range(len(views)):
+                btf[k * n_illum:(k + 1) * n_illum] = textures
+            write[enabled].append(time.perf_counter() - start)
+    set_checksums(True)
+    best = {name: {k: min(v) for k, v in d.items()} for name, d in (("read", read), ("write", write))}
+    return {"read_gb": round(raw[True].nbytes / 1e9, 3), "write_gb": round(len(views) * textures.nbytes / 1e9, 3),
+            "read_s": {str(k): round(v, 3) for k, v in best["read"].items()},
+            "write_s": {str(k): round(v, 3) for k, v in best["write"].items()},
+            "checksum_s": round(best["read"][True] - best["read"][False] + best["write"][True] - best["write"][False],
+                                3)}
+
+
 def bench_ingest(args, scratch: Path) -> dict:
     from flows.runtime import runtime
     from tasks.ingest import ingest_capture
@@ -111,6 +156,7 @@ def bench_ingest(args, scratch: Path) -> dict:
                 log(f"ingest {'with' if enabled else 'without'} checksums: {runs[enabled][-1]:.2f} s, "
                     f"workers' CPU {cpu[enabled][-1]:.2f} s")
         set_checksums(True)
+        io = bench_io(inputs, args.repeats, scratch)
     med = {k: float(np.median(v)) for k, v in runs.items()}
     med_cpu = {k: float(np.median(v)) for k, v in cpu.items()}
     return {
@@ -125,6 +171,8 @@ def bench_ingest(args, scratch: Path) -> dict:
         "without_checksums_worker_cpu_s": [round(s, 2) for s in cpu[False]],
         "cpu_cost": round(1.0 - med_cpu[False] / med_cpu[True], 4),
         "bar": "< 5 % of the ingest's throughput",
+        "io": {**io, "checksum_s_over_ingest_worker_cpu": round(io["checksum_s"] / min(cpu[True]), 4),
+               "checksum_s_over_ingest_core_s": round(io["checksum_s"] / (2 * min(runs[True])), 4)},
     }
 
 

@@ -48,6 +48,7 @@ import numpy as np
 __all__ = [
     "MIN_COS_THETA",
     "WHITE_BORDER_FRACTION",
+    "WHITE_MAX_TEXELS",
     "WHITE_TOLERANCES",
     "apply_colour_matrix",
     "apply_led_calibration",
@@ -83,10 +84,10 @@ WHITE_MAX_TEXELS = 4096
 #: ``brightness_spread`` (>= 0.18) still refuses them all.
 #:
 #: * ``brightness_spread`` -- median over LED x view textures of (P95 - P5) of the texels' channel sum
-#:   less its plane (slopes from the medians of the halves, so specks do not tilt it), over P50 of the channel sum: a flat Lambertian target is uniform
-#:   under every LED up to noise and a smooth fall-off (a real dome's LEDs at 0.65 m light a 5 cm
-#:   sample up to about +-8 % unevenly, which the plane removes); texture, relief, shadows and
-#:   highlights are not. 0.10.
+#:   less its plane (slopes from the medians of the halves, so specks do not tilt it), over P50 of the
+#:   channel sum: a flat Lambertian target is uniform under every LED up to noise and a smooth
+#:   fall-off (a real dome's LEDs at 0.65 m light a 5 cm sample up to about +-8 % unevenly, which the
+#:   plane removes); texture, relief, shadows and highlights are not. 0.10.
 #: * ``chromaticity_spread`` -- the same median of max over channels of (P95 - P5) / P50 of the texels'
 #:   chromaticity (channel / channel sum): under one LED the LED's colour and the camera's sensitivity
 #:   scale every texel alike, so a neutral target has one chromaticity; a coloured, patterned material

@@ -331,7 +331,8 @@ def _export_exr(args: argparse.Namespace) -> int:
         files = export_exr(args.btf, args.out, parse_selection(args.lv, group["btf"].shape[0]),
                            keep_nonfinite=args.keep_nonfinite)
     except (ValueError, KeyError, FileNotFoundError) as exc:
-        text = f"no array {exc} in the store; give the output of `btf ingest`" if isinstance(exc, KeyError) else str(exc)
+        text = (f"no array {exc} in the store; give the output of `btf ingest`" if isinstance(exc, KeyError)
+                else str(exc))
         where = "" if text.startswith(str(args.btf)) else f"{args.btf}: "      # every message names the store once
         print(f"btf export-exr: {where}{text}", file=sys.stderr)
         return EXIT_BAD_INPUT

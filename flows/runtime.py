@@ -286,12 +286,18 @@ RUN_LOGGERS = ("prefect.flow_runs", "prefect.task_runs")
 _QUIET = {"prefect": False}
 
 
+#: Prefect log levels at which a failed run's tracebacks are shown (the user asked for detail).
+VERBOSE_LEVELS = ("DEBUG", "INFO")
+
+
 class _QuietRunFailures(logging.Filter):
-    """Drops the ERROR records of ``RUN_LOGGERS`` while Prefect's log level is the one ``quiet_logs`` chose."""
+    """Drops the ERROR records of ``RUN_LOGGERS`` unless ``PREFECT_LOGGING_LEVEL`` asks for detail
+    (``INFO`` or ``DEBUG``): at the default ``WARNING`` (``quiet_logs``'s choice, or the same level
+    inherited from a parent ``btf`` process or set by hand) the error reaches ``btf`` in one line."""
 
     def filter(self, record: logging.LogRecord) -> bool:
-        chosen = _QUIET["prefect"] and os.environ.get("PREFECT_LOGGING_LEVEL") == "WARNING"
-        return record.levelno < logging.ERROR or not chosen
+        verbose = os.environ.get("PREFECT_LOGGING_LEVEL", "WARNING").upper() in VERBOSE_LEVELS
+        return record.levelno < logging.ERROR or verbose
 
 
 _RUN_FAILURE_FILTER = _QuietRunFailures()

@@ -206,8 +206,8 @@ def _check_class(model: zarr.Group, cls: str, names: tuple[str, ...], model_path
     if missing:
         have = sorted(group.group_keys())
         raise ValueError(f"{model_path}: class {cls} has no basis {', '.join(missing)} (it has: "
-                         f"{', '.join(have) or 'none'}); choose --basis from {', '.join(RECONSTRUCT_BASES)} by what the "
-                         "class has, or build the model with that basis")
+                         f"{', '.join(have) or 'none'}); choose --basis from {', '.join(RECONSTRUCT_BASES)} by "
+                         "what the class has, or build the model with that basis")
 
 
 def _basis(model: zarr.Group, cls: str, name: str, k: int | None, model_path: Any) -> tuple[np.ndarray, np.ndarray]:
