@@ -507,6 +507,9 @@ def _preflight(args: argparse.Namespace) -> dict:
     elif args.command == "resample":
         from tasks.resample import check_inputs
         check_inputs(args.btf, args.out, args.sampling, overwrite=args.overwrite)
+    elif args.command == "build-db":
+        from tasks.model import check_model_target, discover, read_class_map
+        check_model_target(Path(args.out) / "model.zarr", discover(args.db, read_class_map(args.classes)))
     elif args.command == "ingest":
         from tasks.ingest import check_ingest
         from tasks.radiometric import load_calibration

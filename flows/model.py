@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import json
-from pathlib import Path
 from typing import Any
 
 from prefect import flow, task
@@ -44,12 +42,7 @@ def build_db_flow(db: str, out: str, scheduler_address: str, settings: ModelSett
     per-class ABTF bases and the leave-one-out evaluation. A rerun reuses
     every basis whose inputs did not change.
     """
-    class_map = None
-    if classes:
-        try:
-            class_map = json.loads(Path(classes).read_text())
-        except (OSError, json.JSONDecodeError) as exc:
-            raise ValueError(f"{classes}: not a readable JSON class map ({exc}); write "
-                             '{"<store name>": "<class>", ...}') from None
-    summary = build_stage(db, out, scheduler_address, settings, class_map, progress)
+    from tasks.model import read_class_map
+
+    summary = build_stage(db, out, scheduler_address, settings, read_class_map(classes), progress)
     return model_report_stage(out, summary, settings)

@@ -265,18 +265,53 @@ def _n_columns(material: Material, basis: str, patch: int) -> int:
 # --------------------------------------------------------------------------- the store
 
 
+def check_model_target(path: str | os.PathLike, materials: Sequence[Material]) -> bool:
+    """Whether ``path`` holds a model store that a build of ``materials`` adds to (``False``: nothing there).
+
+    Raises
+    ------
+    FileExistsError
+        ``path`` holds something else, or a model store of another light/view sampling.
+    """
+    from tasks.staging import store_attrs
+
+    attrs = store_attrs(path)
+    if attrs is None:
+        return False
+    if attrs.get("schema") != SCHEMA_NAME:
+        raise FileExistsError(f"{path} holds something other than a model store; choose another --out")
+    if attrs.get("rows_id") != materials[0].rows_id:
+        raise FileExistsError(f"{path} holds a model store of another light/view sampling (rows_id "
+                              f"{attrs.get('rows_id')!r}, this database {materials[0].rows_id!r}); choose another --out")
+    return True
+
+
+def read_class_map(path: str | os.PathLike | None) -> dict[str, str] | None:
+    """The ``--classes`` JSON of ``btf build-db`` (``{"<store name>": "<class>", ...}``); ``None`` for no file.
+
+    Raises
+    ------
+    ValueError
+        Not readable JSON, or not a mapping of names to class names.
+    """
+    if not path:
+        return None
+    try:
+        class_map = json.loads(Path(path).read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{path}: not a readable JSON class map ({exc}); write "
+                         '{"<store name>": "<class>", ...}') from None
+    if not isinstance(class_map, dict) or not all(isinstance(v, str) for v in class_map.values()):
+        raise ValueError(f'{path}: expected a JSON object {{"<store name>": "<class>", ...}}')
+    return class_map
+
+
 def open_model_store(path: str | os.PathLike, materials: Sequence[Material]) -> zarr.Group:
     """Create the model store, or reopen it when its light/view sampling matches (then it is added to)."""
     first = materials[0]
     src = zarr.open_group(first.path, mode="r", zarr_format=3)
-    if Path(path).exists():
-        group = zarr.open_group(str(path), mode="r+", zarr_format=3)
-        if group.attrs.get("schema") != SCHEMA_NAME:
-            raise FileExistsError(f"{path} holds something other than a model store; choose another --out")
-        if group.attrs.get("rows_id") != first.rows_id:
-            raise FileExistsError(f"{path} holds a model store of another light/view sampling (rows_id "
-                                  f"{group.attrs.get('rows_id')!r}, this database {first.rows_id!r}); choose another --out")
-        return group
+    if check_model_target(path, materials):
+        return zarr.open_group(str(path), mode="r+", zarr_format=3)
     group = begin_store(path)
     for name in ("light_dir", "view_dir"):
         data = src[name][...]

@@ -142,3 +142,41 @@ def test_bad_manifest_fails_fast_without_traceback(tmp_path, write_dng):
     assert "b.dng" in done.stderr and "Traceback" not in done.stderr and "prefect" not in done.stderr.lower()
     assert seconds < 20, f"the manifest was refused after {seconds:.0f} s: after a cluster started?"
     assert not (tmp_path / "c.zarr").exists()
+
+
+@pytest.fixture()
+def unreachable_runtime(tmp_path, monkeypatch):
+    """A profile whose Prefect API cannot answer: a command that reaches start-up exits 3 (runtime),
+    one that refuses its input first exits 2, so the exit code shows which came first."""
+    profile = tmp_path / "unreachable.yaml"
+    profile.write_text("cluster: {kind: local, n_workers: 1}\nprefect: {api_url: 'http://127.0.0.1:9/api', "
+                       "startup_timeout_s: 1}\n")
+    monkeypatch.delenv("PREFECT_API_URL", raising=False)
+    return ["--cluster", str(profile), "--no-progress"]
+
+
+def test_refusals_come_before_start_up(unreachable_runtime, tiny_database, tiny_btf, tmp_path, capsys):
+    from flows.cli import EXIT_RUNTIME, main
+
+    capture = _capture(tiny_database)
+    taken = tmp_path / "taken.zarr"
+    zarr.open_group(str(taken), mode="w", zarr_format=3).attrs["schema"] = "something-else"
+    (tmp_path / "classes.json").write_text("[1, 2]")
+    cases = {
+        "ingest into another store": ["ingest", capture, "--out", taken],
+        "simulate into another store": ["simulate", "--materials", "1", "--out", tmp_path / "sim"],
+        "build-db with a bad class map": ["build-db", tiny_btf.parent, "--out", tmp_path / "m",
+                                          "--classes", tmp_path / "classes.json"],
+        "build-db of a folder without stores": ["build-db", tmp_path / "empty", "--out", tmp_path / "m"],
+        "resample of no store": ["resample", tmp_path / "none.zarr", "--out", tmp_path / "r.zarr"],
+    }
+    (tmp_path / "empty").mkdir()
+    zarr.open_group(str(tmp_path / "sim" / "000-leather.zarr"), mode="w", zarr_format=3).attrs["schema"] = "x"
+    for name, argv in cases.items():
+        capsys.readouterr()
+        code = main([*unreachable_runtime, *map(str, argv)])
+        err = capsys.readouterr().err
+        assert code == EXIT_BAD_INPUT, (name, code, err)
+        assert "Traceback" not in err, (name, err)
+    # and the runtime itself is only reached by a command whose input is fine
+    assert main([*unreachable_runtime, "ingest", str(capture), "--out", str(tmp_path / "fine.zarr")]) == EXIT_RUNTIME
