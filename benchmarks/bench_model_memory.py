@@ -65,14 +65,16 @@ def write_store(path: Path, n_lv: int, h: int, w: int, rank: int = 16, seed: int
     """A positive synthetic BTF store that `tasks.model.discover` accepts; (btf bytes, band rows)."""
     import zarr
 
+    from tasks.integrity import create_array
+
     from tasks.ingest import band_rows
 
     rng = np.random.default_rng(seed)
     rows = band_rows(N_LEDS, h, w)
     group = zarr.open_group(str(path), mode="w", zarr_format=3)
-    btf = group.create_array("btf", shape=(n_lv, h, w, 3), chunks=(N_LEDS, rows, w, 3), dtype="float32",
-                             fill_value=0.0, compressors=None,
-                             dimension_names=["lv", "tex_row", "tex_col", "channel"])
+    btf = create_array(group, "btf", shape=(n_lv, h, w, 3), chunks=(N_LEDS, rows, w, 3), dtype="float32",
+                       fill_value=0.0, compressors=None,
+                       dimension_names=["lv", "tex_row", "tex_col", "channel"])
     abrdfs = rng.uniform(0.02, 1.0, (n_lv, rank)).astype(np.float32)        # positive ABRDF basis
     for r0 in range(0, h, rows):
         r1 = min(r0 + rows, h)
@@ -84,7 +86,7 @@ def write_store(path: Path, n_lv: int, h: int, w: int, rank: int = 16, seed: int
     dirs /= np.linalg.norm(dirs, axis=-1, keepdims=True)
     dirs[..., 2] = np.abs(dirs[..., 2])
     for name, data in (("light_dir", dirs[0]), ("view_dir", dirs[1])):
-        group.create_array(name, shape=data.shape, dtype="float64", chunks=data.shape, compressors=None)[...] = data
+        create_array(group, name, shape=data.shape, dtype="float64", chunks=data.shape, compressors=None)[...] = data
     group.attrs.put({"schema": "btf-texture", "schema_version": "1.0", "complete": True, "texture_shape": [h, w],
                      "ingest_hash": f"synthetic-{n_lv}-{h}-{w}-{rank}-{seed}",
                      "material": {"material_id": "synthetic", "class": "synthetic"}})

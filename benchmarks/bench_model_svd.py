@@ -89,8 +89,7 @@ def write_store(path: Path, U: np.ndarray, V: np.ndarray, s: np.ndarray, h: int,
     rows = band_rows(n_leds, h, w)
     group = zarr.open_group(str(path), mode="w", zarr_format=3)
     btf = create_array(group, "btf", shape=(n_lv, h, w, 3), chunks=(n_leds, rows, w, 3), dtype="float32",
-                             fill_value=0.0, compressors=None,
-                             dimension_names=["lv", "tex_row", "tex_col", "channel"])
+                       fill_value=0.0, compressors=None, dimension_names=["lv", "tex_row", "tex_col", "channel"])
     Us = (U * s).astype(np.float32)
     V32 = V.astype(np.float32)
     start = time.perf_counter()

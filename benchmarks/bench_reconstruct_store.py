@@ -68,6 +68,7 @@ def make_inputs(folder: Path, n_turn: int, size: int, n_s: int, k: int) -> tuple
     """A sparse single-light measurement store and a model store holding one class ALS basis."""
     import zarr
 
+    from tasks.integrity import create_array
     from tasks.measurement import write_measurement
 
     n_lv = n_turn * N_CAM * N_LEDS
@@ -88,12 +89,12 @@ def make_inputs(folder: Path, n_turn: int, size: int, n_s: int, k: int) -> tuple
     model = folder / "model.zarr"
     group = zarr.open_group(str(model), mode="w", zarr_format=3)
     for name, d in (("light_dir", light), ("view_dir", view)):
-        group.create_array(name, shape=d.shape, dtype="float64", chunks=d.shape)[...] = d
+        create_array(group, name, shape=d.shape, dtype="float64", chunks=d.shape)[...] = d
     group.attrs.put({"schema": "btf-model", "schema_version": "1.0", "rows_id": "bench", "n_lv": n_lv})
     U = np.linalg.qr(rng.standard_normal((n_lv, k)))[0]
     sub = group.require_group("classes/leather/als")
     for name, d in (("U", U), ("sigma", np.linspace(100.0, 1.0, k))):
-        sub.create_array(name, shape=d.shape, dtype="float64", chunks=d.shape)[...] = d
+        create_array(sub, name, shape=d.shape, dtype="float64", chunks=d.shape)[...] = d
     sub.attrs.put({"method": "bench", "key": "bench-als"})
     return str(meas), str(model)
 

@@ -47,7 +47,6 @@ from typing import Any, Callable
 
 import numpy as np
 import zarr
-from zarr.core.buffer import default_buffer_prototype
 
 from btfcore.demultiplex import demultiplex_operator
 from btfcore.ingest import IngestSettings, lv_directions, process_view, view_window
@@ -258,18 +257,9 @@ def ingest_view(capture_path: str, out_path: str, settings: IngestSettings, t: i
                          meta.sample_size_m, settings)
     if capture.is_plan_capture and (capture.exposure_time[t, c] == 0).any():
         return _ingest_plan_view(capture, capture_path, out_path, settings, t, c, calibration, window)
-    selection = (t, c, slice(None), slice(None), window[0], window[1])
-    raw = reused_buffer("raw", (capture.n_illum, capture.n_exp, window[0].stop - window[0].start,
-                                window[1].stop - window[1].start), capture.raw.dtype)
-    try:
-        capture.raw.get_basic_selection(selection, out=default_buffer_prototype().nd_buffer.from_numpy_array(raw))
-    except (OSError, MemoryError):
-        raise                                   # the machine, not the data: worth a retry
-    except Exception as exc:                    # a chunk that does not decode to its shape
-        raise ValueError(
-            f"{capture_path}: raw[(t, c)=({t}, {c})] cannot be read ({type(exc).__name__}: {exc}): a chunk file "
-            "is corrupt or truncated, so the store is damaged; write the capture again "
-            "(btf simulate / btf import-raw)") from exc
+    raw = capture.read_raw(t, c, window, out=reused_buffer(
+        "raw", (capture.n_illum, capture.n_exp, window[0].stop - window[0].start,
+                window[1].stop - window[1].start), capture.raw.dtype))
     textures, valid = process_view(
         raw, capture.exposure_time[t, c], capture.illumination,
         bayer_pattern=meta.bayer_pattern, black_level=meta.black_level, white_level=meta.white_level,
@@ -293,10 +283,10 @@ def _ingest_plan_view(capture: CaptureStore, capture_path: str, out_path: str, s
                       c: int, calibration: Calibration | None, window: tuple) -> tuple[int, int]:
     """A view of a full plan capture whose brackets differ in length: merged per length, then demultiplexed."""
     from btfcore.radiometric import apply_colour_matrix, apply_led_calibration
-    from tasks.measurement import process_brackets, read_window
+    from tasks.measurement import process_brackets
 
     illum = np.arange(capture.n_illum)
-    frames = read_window(capture, t, c, illum, window, capture_path)
+    frames = capture.read_raw(t, c, window, illum)
     rectified, valid = process_brackets(frames, capture.exposure_time[t, c], capture, t, c, settings, window)
     P = demultiplex_operator(capture.illumination).astype(np.float32)          # (n_leds, n_illum)
     textures = (P @ rectified.reshape(capture.n_illum, -1)).reshape(P.shape[0], *rectified.shape[1:])

@@ -289,18 +289,6 @@ def process_brackets(frames: np.ndarray, exposure_time: np.ndarray, capture: Cap
     return out, valid
 
 
-def read_window(capture: CaptureStore, t: int, c: int, illuminations: np.ndarray, window: tuple,
-                path: str) -> np.ndarray:
-    """The window of brackets ``(t, c, illuminations)`` of the raw frames, with a clear error for a bad chunk."""
-    try:
-        return np.stack([capture.raw[t, c, int(i), :, window[0], window[1]] for i in illuminations])
-    except (OSError, MemoryError):
-        raise
-    except Exception as exc:  # noqa: BLE001 - a chunk that does not decode
-        raise ValueError(f"{path}: raw[(t, c)=({t}, {c})] cannot be read ({type(exc).__name__}: {exc}): a chunk "
-                         "file is corrupt or truncated; write the capture again") from exc
-
-
 def ingest_block(capture_path: str, out_path: str, settings: IngestSettings, block: int) -> int:
     """Process the rows of one block of the measurement (whole chunks of ``measured``) and write them."""
     from tasks.ingest import open_capture_once
@@ -319,7 +307,7 @@ def ingest_block(capture_path: str, out_path: str, settings: IngestSettings, blo
         t, c = divmod(v, capture.n_cam)
         window = view_window(capture.homography[t, c], capture.roi_shape, tuple(capture.meta.texture_shape),
                              capture.meta.sample_size_m, settings)
-        frames = read_window(capture, t, c, idx[sel, 2], window, capture_path)
+        frames = capture.read_raw(t, c, window, idx[sel, 2])
         et = capture.exposure_time[t, c][idx[sel, 2]]
         textures[sel], valid[sel] = process_brackets(frames, et, capture, t, c, settings, window)
     group["measured"][r0:r1] = textures              # whole chunks: the block's rows x every band

@@ -33,6 +33,7 @@ from typing import Any
 
 import numpy as np
 import zarr
+from zarr.core.buffer import default_buffer_prototype
 
 import btfcore
 from tasks.integrity import CorruptChunkError, chunk_files_exist, create_array, missing_problem, rerun_hint
@@ -1725,6 +1726,48 @@ class CaptureStore:
                 raise missing_problem(self.path, "raw", chunk, "written", chunk[:3],
                                       rerun_hint(self.attrs)).error()
         return self.raw[t, c, i], self.group["exposure_time"][t, c, i]
+
+    def read_raw(self, t: int, c: int, window: tuple[slice, slice], illuminations: Sequence[int] | None = None,
+                 out: np.ndarray | None = None) -> np.ndarray:
+        """Read a window of the raw brackets of view ``(t, c)``.
+
+        Parameters
+        ----------
+        t, c : int
+            Turntable and camera index.
+        window : (slice, slice)
+            Rows and columns of the region of interest.
+        illuminations : sequence of int, optional
+            Illumination indices to read (all when omitted, one read into ``out``).
+        out : (n_illum, n_exp, rows, cols) ndarray of uint16, optional
+            Buffer to read all illuminations into (reused across views by the ingest).
+
+        Returns
+        -------
+        (n, n_exp, rows, cols) ndarray of uint16
+
+        Raises
+        ------
+        CorruptChunkError
+            A chunk fails its checksum, is truncated or is missing (naming the store, array and chunk).
+        ValueError
+            A chunk of a store without checksums does not decode to its shape.
+        """
+        try:
+            if illuminations is None:
+                selection = (t, c, slice(None), slice(None), window[0], window[1])
+                if out is None:
+                    return self.raw.get_basic_selection(selection)
+                self.raw.get_basic_selection(selection, out=default_buffer_prototype().nd_buffer.from_numpy_array(out))
+                return out
+            return np.stack([self.raw[t, c, int(i), :, window[0], window[1]] for i in illuminations])
+        except (OSError, MemoryError, CorruptChunkError):
+            raise                                   # the machine (worth a retry), or already named
+        except Exception as exc:  # noqa: BLE001 - a chunk that does not decode to its shape
+            raise ValueError(
+                f"{self.path}: raw[(t, c)=({t}, {c})] cannot be read ({type(exc).__name__}: {exc}): a chunk file "
+                "is corrupt or truncated, so the store is damaged; write the capture again "
+                "(btf simulate / btf import-raw)") from exc
 
     def pending_views(self) -> list[tuple[int, int]]:
         """Views ``(t, c)`` with any bracket not written (or, with truth, no truth yet).

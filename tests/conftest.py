@@ -115,3 +115,29 @@ def _kill_btf_when(args: list[str], ready, timeout: float = 240.0) -> None:
 def kill_btf_when():
     """``kill_btf_when(args, ready)``: a real mid-run SIGKILL of a `btf` command."""
     return _kill_btf_when
+
+
+class _ChunkFiles:
+    """The chunk files of a Zarr v3 store on disk, to damage them as a failing disk or copy would."""
+
+    @staticmethod
+    def path(store, array: str, chunk: tuple[int, ...]):
+        """The file of chunk ``chunk`` of array ``array`` (``/``-separated) in ``store``."""
+        from pathlib import Path
+
+        return Path(store).joinpath(*array.split("/"), "c", *map(str, chunk))
+
+    @staticmethod
+    def flip_byte(path, offset: int = 7) -> None:
+        """XOR one byte of a chunk file (the data, not the checksum at its end)."""
+        from pathlib import Path
+
+        data = bytearray(Path(path).read_bytes())
+        data[offset] ^= 0x5A
+        Path(path).write_bytes(bytes(data))
+
+
+@pytest.fixture(scope="session")
+def chunk_files():
+    """``chunk_files.path(store, array, chunk)`` and ``chunk_files.flip_byte(path)``."""
+    return _ChunkFiles

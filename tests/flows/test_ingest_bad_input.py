@@ -177,7 +177,7 @@ def test_a_bracket_without_a_usable_pixel_is_an_error(corrupt, found, capture, t
 @pytest.mark.parametrize("corrupt, named", [
     pytest.param(_white, "raw[(t, c, i)=(0, 1, 3)", id="all-saturated bracket"),
     pytest.param(_duplicate_pattern, "illumination (16 patterns x 16 LEDs)", id="inseparable patterns"),
-    pytest.param(_truncated_chunk, "raw[(t, c)=(0, 0)]", id="truncated raw chunk"),
+    pytest.param(_truncated_chunk, "array raw, chunk (0, 0, ", id="truncated raw chunk"),
 ])
 def test_a_failed_overwrite_names_the_input_and_keeps_the_finished_output(corrupt, named, capture, finished_copy,
                                                                           tmp_path, run_btf):
@@ -200,7 +200,7 @@ def test_a_failed_staged_overwrite_keeps_the_output_and_the_rerun_resumes_and_re
     matrix.write_text(json.dumps({"matrix": (0.5 * np.eye(3)).tolist()}))
     bad = _corrupted(capture, tmp_path, _truncated_chunk)
     code, _, err = run_btf("ingest", bad, "--out", out, "--overwrite", "--colour-matrix", matrix)
-    assert code == 2 and f"{bad}: raw[(t, c)=(0, 0)] cannot be read" in err, err
+    assert code == 2 and f"{bad}: array raw, chunk (0, 0, " in err and ": truncated (" in err, err
     assert _digest(out, _report(out)) == before
     staging = tmp_path / "finished.partial.zarr"
     staged = zarr.open_group(str(staging), mode="r")

@@ -22,17 +22,6 @@ from tasks.store import CaptureStore, create_capture_store, open_capture_store, 
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def flip_byte(path: Path, offset: int = 7) -> None:
-    """XOR one byte of a chunk file (the data, not the checksum at its end)."""
-    data = bytearray(path.read_bytes())
-    data[offset] ^= 0x5A
-    path.write_bytes(bytes(data))
-
-
-def chunk_file(store: Path, array: str, chunk: tuple[int, ...]) -> Path:
-    return store.joinpath(*array.split("/"), "c", *map(str, chunk))
-
-
 def write_capture(path: Path, *, black_level: int | None = None) -> Path:
     """A complete single-turntable capture of the `tiny` dome (random frames), written by the store's writers."""
     from dataclasses import replace
@@ -108,7 +97,7 @@ def test_every_array_of_a_capture_store_has_checksums(capture):
         [name for name, a in arrays if not has_checksums(a)]
 
 
-def test_every_array_of_a_measurement_store_has_checksums(tmp_path):
+def test_every_array_of_a_measurement_store_has_checksums(tmp_path, chunk_files):
     from tasks.measurement import write_measurement
 
     rng = np.random.default_rng(1)
@@ -117,7 +106,7 @@ def test_every_array_of_a_measurement_store_has_checksums(tmp_path):
     write_measurement(tmp_path / "m.zarr", rng.random((4, 3, 3, 3)), G, dirs, dirs, (1, 1, 4))
     group = zarr.open_group(str(tmp_path / "m.zarr"), mode="r")
     assert all(has_checksums(a) for _, a in group.arrays())
-    flip_byte(chunk_file(tmp_path / "m.zarr", "measured", (0, 0, 0, 0)))
+    chunk_files.flip_byte(chunk_files.path(tmp_path / "m.zarr", "measured", (0, 0, 0, 0)))
     [problem] = verify_store(tmp_path / "m.zarr")
     assert (problem.array, problem.chunk, problem.kind) == ("measured", (0, 0, 0, 0), "corrupt")
     assert "btf ingest --overwrite" in problem.hint
@@ -126,8 +115,8 @@ def test_every_array_of_a_measurement_store_has_checksums(tmp_path):
 # --------------------------------------------------------------------------- a changed byte
 
 
-def test_a_flipped_byte_is_named_by_the_reader_and_by_verify_store(capture):
-    flip_byte(chunk_file(capture, "raw", (0, 1, 3, 0, 0, 0)), offset=1000)
+def test_a_flipped_byte_is_named_by_the_reader_and_by_verify_store(capture, chunk_files):
+    chunk_files.flip_byte(chunk_files.path(capture, "raw", (0, 1, 3, 0, 0, 0)), offset=1000)
     store = open_capture_store(capture)                        # the frames are not read when opening
     with pytest.raises(CorruptChunkError) as ei:
         store.read_bracket(0, 1, 3)
@@ -142,8 +131,8 @@ def test_a_flipped_byte_is_named_by_the_reader_and_by_verify_store(capture):
     assert str(problem) == str(e)
 
 
-def test_a_truncated_chunk_is_named_as_truncated(capture):
-    path = chunk_file(capture, "dark_frames", (1, 0, 0, 0))
+def test_a_truncated_chunk_is_named_as_truncated(capture, chunk_files):
+    path = chunk_files.path(capture, "dark_frames", (1, 0, 0, 0))
     size = path.stat().st_size
     path.write_bytes(path.read_bytes()[:100])
     with pytest.raises(CorruptChunkError, match=rf"array dark_frames, chunk \(1, 0, 0, 0\): truncated "
@@ -153,8 +142,8 @@ def test_a_truncated_chunk_is_named_as_truncated(capture):
     assert (problem.array, problem.chunk, problem.kind) == ("dark_frames", (1, 0, 0, 0), "truncated")
 
 
-def test_a_corrupt_small_array_is_a_validation_problem_not_a_crash(capture):
-    flip_byte(chunk_file(capture, "exposure_time", (0, 2, 0, 0)))
+def test_a_corrupt_small_array_is_a_validation_problem_not_a_crash(capture, chunk_files):
+    chunk_files.flip_byte(chunk_files.path(capture, "exposure_time", (0, 2, 0, 0)))
     [problem] = validate_capture_store(capture)
     assert (problem.array, problem.index) == ("exposure_time", "chunk (0, 2, 0, 0)")
     assert problem.found.startswith("checksum mismatch")
@@ -163,8 +152,8 @@ def test_a_corrupt_small_array_is_a_validation_problem_not_a_crash(capture):
 # --------------------------------------------------------------------------- a missing chunk
 
 
-def test_a_missing_chunk_of_a_written_bracket_is_named_not_read_as_zeros(capture):
-    chunk_file(capture, "raw", (0, 1, 3, 0, 0, 0)).unlink()
+def test_a_missing_chunk_of_a_written_bracket_is_named_not_read_as_zeros(capture, chunk_files):
+    chunk_files.path(capture, "raw", (0, 1, 3, 0, 0, 0)).unlink()
     [problem] = validate_capture_store(capture)
     assert (problem.array, problem.index) == ("raw", "chunk (0, 1, 3, 0, 0, 0)")
     assert "chunk file missing" in problem.found and "damaged after writing" in problem.hint
@@ -187,18 +176,18 @@ def test_an_unwritten_bracket_is_not_a_missing_chunk(tmp_path):
     assert not any("missing" in p.found for p in validate_capture_store(tmp_path / "c.zarr", require_complete=False))
 
 
-def test_with_black_level_0_an_absent_chunk_may_be_all_zeros(tmp_path):
+def test_with_black_level_0_an_absent_chunk_may_be_all_zeros(tmp_path, chunk_files):
     """Zarr does not store a chunk that is all fill value; with black level 0 a black bracket is one."""
     path = write_capture(tmp_path / "c.zarr", black_level=0)
-    chunk_file(path, "raw", (0, 0, 0, 0, 0, 0)).unlink()
+    chunk_files.path(path, "raw", (0, 0, 0, 0, 0, 0)).unlink()
     assert validate_capture_store(path) == [] and verify_store(path) == []
 
 
 # --------------------------------------------------------------------------- btf validate
 
 
-def test_validate_deep_names_the_array_and_chunk(capture, capsys):
-    flip_byte(chunk_file(capture, "raw", (0, 2, 5, 0, 0, 0)))
+def test_validate_deep_names_the_array_and_chunk(capture, capsys, chunk_files):
+    chunk_files.flip_byte(chunk_files.path(capture, "raw", (0, 2, 5, 0, 0, 0)))
     code, out = validate(capsys, capture)
     assert code == 0 and out.startswith(f"{capture}: valid"), out           # without --deep: frames unread
     code, out = validate(capsys, capture, "--deep")
@@ -207,14 +196,14 @@ def test_validate_deep_names_the_array_and_chunk(capture, capsys):
     assert "array raw, chunk (0, 2, 5, 0, 0, 0): checksum mismatch" in out and "note:" not in out
 
 
-def test_validate_deep_lists_each_missing_chunk_once(capture, capsys):
-    chunk_file(capture, "raw", (0, 1, 3, 0, 0, 0)).unlink()
+def test_validate_deep_lists_each_missing_chunk_once(capture, capsys, chunk_files):
+    chunk_files.path(capture, "raw", (0, 1, 3, 0, 0, 0)).unlink()
     code, out = validate(capsys, capture, "--deep")
     assert code == EXIT_BAD_INPUT and f"{capture}: 1 problem(s)" in out, out
     assert "array raw, chunk (0, 1, 3, 0, 0, 0): chunk file missing" in out
 
 
-def test_a_store_without_checksums_still_validates_and_says_so(tmp_path, capsys, monkeypatch):
+def test_a_store_without_checksums_still_validates_and_says_so(tmp_path, capsys, monkeypatch, chunk_files):
     """A store written before checksums were added: opened, validated, --deep checks what it can."""
     monkeypatch.setattr(integrity, "checksummed", lambda compressors=None: [])
     old = write_capture(tmp_path / "old.zarr")
@@ -224,9 +213,9 @@ def test_a_store_without_checksums_still_validates_and_says_so(tmp_path, capsys,
     for args in ([old], [old, "--deep"]):
         code, out = validate(capsys, *args)
         assert code == 0 and f"{old}: valid" in out and f"note: {CHECKSUM_NOTE}" in out, out
-    flip_byte(chunk_file(old, "raw", (0, 0, 1, 0, 0, 0)))
+    chunk_files.flip_byte(chunk_files.path(old, "raw", (0, 0, 1, 0, 0, 0)))
     assert verify_store(old) == []                                 # undetectable without a checksum
-    path = chunk_file(old, "raw", (0, 0, 2, 0, 0, 0))
+    path = chunk_files.path(old, "raw", (0, 0, 2, 0, 0, 0))
     path.write_bytes(path.read_bytes()[:-10])
     code, out = validate(capsys, old, "--deep")
     assert code == EXIT_BAD_INPUT and "array raw, chunk (0, 0, 2, 0, 0, 0): truncated" in out, out

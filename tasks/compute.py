@@ -1,0 +1,45 @@
+"""Running a stage's tasks on the Dask cluster: the one submit-and-wait loop with progress.
+
+Every stage fans its work out as independent tasks (one per view, band,
+material ...) and waits for all of them, reporting each one as it finishes
+(``progress(done, total)``, which the flows turn into a progress bar or log
+lines). A failed task re-raises its worker's error here, with the worker's
+message, as soon as it is the next to finish (docs/architecture.md, "Execution").
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Any
+
+#: ``progress(done, total)``, called after each finished task.
+Progress = Callable[[int, int], None]
+
+
+def wait_all(futures: Sequence[Any], progress: Progress | None = None) -> list[Any]:
+    """Wait for ``futures`` as they finish; their results in the order given.
+
+    Parameters
+    ----------
+    futures : sequence of distributed.Future
+        Submitted tasks.
+    progress : callable, optional
+        ``progress(done, total)`` after each finished task.
+
+    Raises
+    ------
+    Exception
+        The first failed task's error, as raised on its worker.
+    """
+    from distributed import as_completed
+
+    for done, future in enumerate(as_completed(futures), 1):
+        future.result()                              # re-raises the worker's error here
+        if progress is not None:
+            progress(done, len(futures))
+    return [f.result() for f in futures]
+
+
+def run_all(client: Any, fn: Callable[..., Any], args: Sequence[tuple], progress: Progress | None = None) -> list[Any]:
+    """``fn(*a)`` for every ``a`` in ``args`` as one task each; the results in order (see :func:`wait_all`)."""
+    return wait_all([client.submit(fn, *a, pure=False) for a in args], progress)
