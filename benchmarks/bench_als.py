@@ -1,6 +1,6 @@
 """Benchmark: the batched relative-error ALS solve against the machine's GEMM rate.
 
-:func:`btfcore.als.als_basis` (paper 4, eqs. 5-8) on a positive synthetic
+:func:`btfcore.model.als.als_basis` (paper 4, eqs. 5-8) on a positive synthetic
 matrix ``D`` (``--n-lv`` x ``--n-tx``, float32, rank ``--c`` plus 1 %
 noise, all entries positive) with ``W = relative_error_weights(D)``, as
 ``tasks.model`` fits a material, on the default backend (torch; CPU here,
@@ -11,7 +11,7 @@ torch's default threads). Reported:
   accumulate the rows' systems) cancel; medians of ``--repeats`` runs
   (``tol=0``: every iteration runs);
 * ``gemm_gflop_per_iteration``: the matrix products of one iteration as
-  btfcore/als.py does them, with ``n_pack = c (c + 1) / 2``:
+  btfcore/model/als.py does them, with ``n_pack = c (c + 1) / 2``:
   ``Gp = (W^2)^T P`` (2 n_lv n_tx n_pack), ``(W^2 D)^T U`` (2 n_lv n_tx c),
   the residual ``U V_chunk`` (2 n_lv n_tx c), ``Gr += W^2 (V_i V_j)^T``
   (2 n_lv n_tx n_pack) and ``Rr += (W^2 D) V^T`` (2 n_lv n_tx c), i.e.
@@ -105,7 +105,7 @@ def main() -> int:
     args = parser.parse_args()
     import torch
 
-    from btfcore.als import CHUNK_BYTES, als_basis, relative_error_weights
+    from btfcore.model.als import CHUNK_BYTES, als_basis, relative_error_weights
 
     n_lv, n_tx, c = args.n_lv, args.n_tx, args.c
     load_start = round(os.getloadavg()[0], 2)

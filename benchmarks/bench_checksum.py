@@ -13,7 +13,7 @@ run with the contenders interleaved, the same work with and without the checksum
 * ``model``: a synthetic btf-texture store (``bench_model_svd.write_store``: 11 views x 198 LEDs =
   2,178 rows x 128 x 128 x 3 texels, float32, 428 MB), written with and without checksums; per
   variant the write, one streaming pass of ``tasks.model.blocks`` (what the basis fits read) and a
-  randomized truncated SVD of rank ``--k`` over that stream (``btfcore.truncated_svd``, BLAS on one
+  randomized truncated SVD of rank ``--k`` over that stream (``btfcore.model.truncated_svd``, BLAS on one
   thread), each as CPU seconds of this process and wall seconds; costs from the fastest runs;
 * ``io``: the ingest's own Zarr traffic alone, on one worker (its environment: malloc settings,
   one thread), nothing else computed: every view's raw read as
@@ -183,7 +183,7 @@ def bench_model(args, scratch: Path) -> dict:
     from bench_model_svd import N_LEDS, factors, write_store
     from threadpoolctl import threadpool_limits
 
-    from btfcore.truncated_svd import truncated_svd
+    from btfcore.model.truncated_svd import truncated_svd
     from tasks.model import blocks
 
     n_lv, h = args.views * N_LEDS, args.texture

@@ -16,7 +16,7 @@ of raw input).
   first ``--peer-views`` views;
 * peer ``opencv_window_loop_mb_per_s``: the same loop on only the window of
   each frame that the texture reads (what btf ingest processes,
-  :func:`btfcore.rectify.support_window`), so that the ratio against it
+  :func:`btfcore.capture.rectify.support_window`), so that the ratio against it
   shows what is left once both crop;
 * ``ratio`` = ingest / full-frame peer, ``ratio_window`` = ingest / window
   peer, measured in the same run. Issue 3's target is at least 2x the loop
@@ -52,7 +52,7 @@ def opencv_loop(capture_path: str, n_views: int, out_dir: Path, window: bool = F
     """Seconds and raw bytes of the per-image OpenCV loop over the first views (``window``:
     only the part of each frame the texture reads, as btf ingest does). Each view's textures
     are saved to ``out_dir`` as one float32 .npy file: the same bytes the ingest writes."""
-    from btfcore.rectify import rectification_matrix, support_window, texture_homography
+    from btfcore.capture.rectify import rectification_matrix, support_window, texture_homography
     from tasks.store import open_capture_store
 
     store = open_capture_store(capture_path)

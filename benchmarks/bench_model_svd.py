@@ -18,7 +18,7 @@ Issue 4's target: k = 256 in under 5 minutes at under 0.1 % excess error.
 
 Contenders, all timed in this run on the same store:
 
-* ours: :func:`btfcore.truncated_svd.truncated_svd` (``method='randomized'``,
+* ours: :func:`btfcore.model.truncated_svd.truncated_svd` (``method='randomized'``,
   QR every pass) streaming the texel bands of the store through
   ``tasks.model.blocks(store, 'als')`` (linear values, one block per band),
   in this process with numpy's default BLAS threads (all cores); one run
@@ -211,7 +211,7 @@ def main() -> int:
         zarr_rate, zarr_pass_s = zarr_read_rate(store)
         result["zarr_pass_gb_per_s"], result["zarr_pass_s"] = round(zarr_rate, 2), round(zarr_pass_s, 2)
         log(f"read rates: files {result['file_read_gb_per_s']} GB/s, zarr pass {zarr_rate:.2f} GB/s")
-        from btfcore.truncated_svd import default_oversample, truncated_svd
+        from btfcore.model.truncated_svd import default_oversample, truncated_svd
         from tasks.model import blocks
 
         ls = sorted({k + (default_oversample(k) if p is None else p) for _, p in configs})

@@ -1,6 +1,6 @@
 """Benchmark: applying a reconstruction operator over texel chunks against the machine's GEMM rate.
 
-:func:`btfcore.reconstruct.apply` at the thesis' scale (paper 4, §5: 198
+:func:`btfcore.acquisition.reconstruct.apply` at the thesis' scale (paper 4, §5: 198
 LEDs x 11 cameras x 12 turntable positions = 26,136 light/view pairs,
 128 x 128 RGB texels, float32; ``n_s = 400`` light/turntable pairs times 11
 cameras = 4,400 measured rows; ``k = 1024`` basis vectors). The full
@@ -75,7 +75,7 @@ def main() -> int:
     if args.quick:
         args.n_tx, args.repeats = 4096, 1
 
-    from btfcore.reconstruct import apply, solve_operator
+    from btfcore.acquisition.reconstruct import apply, solve_operator
 
     n_lv, n_meas, k, n_tx, chunk = args.n_lv, args.n_meas, args.k, args.n_tx, args.chunk
     load_start = round(os.getloadavg()[0], 2)

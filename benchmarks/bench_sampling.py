@@ -10,7 +10,7 @@ Comparison (issue 5, "the deterministic sampler reaches kappa at most equal
 to the random swap's, at least 10x faster"), per scale, both samplers from
 the same seeded random start:
 
-* greedy: one run of :func:`btfcore.sampling.greedy`, seconds ``t_g`` and
+* greedy: one run of :func:`btfcore.acquisition.sampling.greedy`, seconds ``t_g`` and
   kappa ``kappa_g``;
 * random swap: ``--swap-steps`` trial swaps, timed; every step costs the
   same, so the time at which it first reached a kappa is the run's seconds
@@ -44,7 +44,7 @@ from _measure import log
 
 def synthetic_basis(n_dirs: int, n_tx: int, k: int, seed: int = 0) -> np.ndarray:
     """Orthonormal ``(n_dirs**2, k)`` basis of a smooth synthetic log-ABRDF matrix."""
-    from btfcore.resample import lv_product, ubo2014_directions
+    from btfcore.capture.resample import lv_product, ubo2014_directions
 
     rng = np.random.default_rng(seed)
     d = ubo2014_directions()[:n_dirs]
@@ -63,7 +63,7 @@ def synthetic_basis(n_dirs: int, n_tx: int, k: int, seed: int = 0) -> np.ndarray
 
 def run_scale(dirs: int, k: int, n_tx: int, n_s: int | None, swap_steps: int, seed: int) -> dict:
     """Greedy and random swap on one basis; the comparison at equal kappa."""
-    from btfcore.sampling import greedy, random_swap
+    from btfcore.acquisition.sampling import greedy, random_swap
 
     t = time.perf_counter()
     U = synthetic_basis(dirs, n_tx, k, seed)

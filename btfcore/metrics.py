@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .colour import LOG_YUV_EPS, _as_float, log_luminance
+from btfcore.model.colour import LOG_YUV_EPS, _as_float, log_luminance
 
 __all__ = ["mpsnr", "mre", "mrmse", "psnr", "relative_error", "texture_errors"]
 
@@ -52,7 +52,7 @@ def relative_error(B: np.ndarray, B_hat: np.ndarray, *, space: str = "linear",
         matrix as ``B.reshape(n_lv, -1, 3)``).
     space : {'linear', 'log_y'}
         ``'log_y'``: compare :math:`\\log \\max(Y, \\varepsilon)` of both
-        (:func:`btfcore.colour.log_luminance`), as paper 1's Table 1 does.
+        (:func:`btfcore.model.colour.log_luminance`), as paper 1's Table 1 does.
     eps : float
         Floor of Y for ``'log_y'``.
 

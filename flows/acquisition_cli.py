@@ -38,7 +38,7 @@ PLAN_HELP = """\
 Write an acquisition plan for a dome (PLAN_DIR/plan.json, complete, and
 PLAN_DIR/plan.csv, one row per shot: turntable angle, LEDs on, cameras, shutter
 times, exposure steps) and print the predicted acquisition time with its
-breakdown (btfcore.time_model; docs/acquisition-planning.md). Strategies: full
+breakdown (btfcore.acquisition.time_model; docs/acquisition-planning.md). Strategies: full
 (every LED alone at every turntable position), sparse (the (turntable, LED)
 pairs of --samples, all cameras), multiplexed (S-matrix patterns), sparse-
 multiplexed (at each turntable position the sampled LEDs multiplexed with
@@ -69,8 +69,8 @@ def _positive_int(text: str) -> int:
 
 def add_acquisition_commands(sub: Any) -> None:
     """Add ``sample``, ``plan`` and ``render`` to the subcommand parsers of :func:`flows.cli.build_parser`."""
-    from btfcore.simulate.devices import DEVICE_NAMES
-    from btfcore.time_model import VMV_TABLE2
+    from btfcore.dome import DEVICE_NAMES
+    from btfcore.acquisition.time_model import VMV_TABLE2
 
     p = sub.add_parser("sample", help="sparse sampling: which light/view pairs to measure (kappa-optimised)",
                        description=SAMPLE_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -134,7 +134,7 @@ def run_acquisition_command(args: argparse.Namespace) -> int | None:
 
 
 def _sample(args: argparse.Namespace) -> dict[str, Any]:
-    from btfcore.simulate.devices import get_device
+    from btfcore.dome import get_device
     from tasks.sample import sample_model, write_samples
 
     show = not getattr(args, "no_progress", False)
@@ -179,9 +179,9 @@ def _selection(args: argparse.Namespace, device) -> Any:
 
 
 def _plan(args: argparse.Namespace) -> dict[str, Any]:
-    from btfcore import plan as P
-    from btfcore.simulate.devices import get_device
-    from btfcore.time_model import TimeModelParams, predict_time, thesis_exposure
+    from btfcore.acquisition import plan as P
+    from btfcore.dome import get_device
+    from btfcore.acquisition.time_model import TimeModelParams, predict_time, thesis_exposure
     from tasks.plan import write_plan
 
     device = get_device(args.device)
@@ -234,7 +234,7 @@ def _env_path(text: str) -> Path:
 
 
 def _render(args: argparse.Namespace) -> dict[str, Any]:
-    from btfcore.btf_render import PointLight
+    from btfcore.render.btf_render import PointLight
     from tasks.render import render_store
 
     light = None

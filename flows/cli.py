@@ -48,7 +48,7 @@ Docs: docs/capture-store.md, docs/devices.md, docs/decisions.md.
 
 
 def _add_simulation_options(p: argparse.ArgumentParser) -> None:
-    from btfcore.simulate.devices import DEVICE_NAMES
+    from btfcore.dome import DEVICE_NAMES
     from btfcore.simulate.materials import MATERIAL_CLASSES
 
     p.add_argument("--device", default="tiny", choices=DEVICE_NAMES,
@@ -306,7 +306,7 @@ def _simulation_config(args: argparse.Namespace):
 
 
 def _calibration(args: argparse.Namespace):
-    from btfcore.simulate.devices import Device, get_device
+    from btfcore.dome import Device, get_device
 
     if args.calibration:
         try:

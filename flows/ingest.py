@@ -7,7 +7,7 @@ from typing import Any
 from prefect import flow, task
 from prefect.cache_policies import NO_CACHE
 
-from btfcore.simulate.devices import Device
+from btfcore.dome import Device
 from flows.runtime import RETRY_ONCE
 from tasks.ingest_raw import RawImportPlan, import_raw, plan_raw_import
 

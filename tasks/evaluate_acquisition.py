@@ -15,10 +15,10 @@ strategy of the thesis against the full ground truth of a simulated database:
    (:func:`tasks.model.merge_bases` with ``exclude``), as the leave-one-out
    evaluation of ``btf build-db`` does.
 3. **Measurements** simulated in BTF space from the truth with the sensor
-   model of :mod:`btfcore.noise`: single-light rows, and S-matrix patterns
+   model of :mod:`btfcore.acquisition.noise`: single-light rows, and S-matrix patterns
    per view summed from the linear truth before the noise. Each image is
    exposed so that its brightest value sits at ``fill`` of the full well.
-4. **Reconstruction** with :mod:`btfcore.reconstruct`, chunked over bands of
+4. **Reconstruction** with :mod:`btfcore.acquisition.reconstruct`, chunked over bands of
    texture rows: every stage is one Dask graph over (material, band) tasks
    (maxima -> exposure; demultiplexed variances -> thresholded operator;
    reconstruction and error sums), the operators built once per held-out
@@ -46,11 +46,11 @@ from typing import Any
 import numpy as np
 import zarr
 
-from btfcore.colour import from_log_yuv, log_luminance, to_log_yuv
-from btfcore.demultiplex import demultiplex_operator
-from btfcore.hadamard import multiplexing_patterns
-from btfcore.noise import SensorNoise, expose, exposure_gain
-from btfcore.reconstruct import (
+from btfcore.model.colour import from_log_yuv, log_luminance, to_log_yuv
+from btfcore.capture.demultiplex import demultiplex_operator
+from btfcore.acquisition.hadamard import multiplexing_patterns
+from btfcore.acquisition.noise import SensorNoise, expose, exposure_gain
+from btfcore.acquisition.reconstruct import (
     LAMBDA_ALS,
     SolveOperator,
     abtf_halo,
@@ -59,8 +59,8 @@ from btfcore.reconstruct import (
     reconstruct_abtf,
     solve_operator,
 )
-from btfcore.sampling import multiplexed_basis, parabolic_map_sampling, random_swap
-from btfcore.simulate.devices import DEVICE_NAMES, Device, get_device
+from btfcore.acquisition.sampling import multiplexed_basis, parabolic_map_sampling, random_swap
+from btfcore.dome import DEVICE_NAMES, Device, get_device
 from btfcore.simulate.materials import MATERIAL_CLASSES
 from tasks.integrity import create_array
 from tasks.model import (
@@ -96,7 +96,7 @@ class EvaluationConfig:
     Parameters
     ----------
     device : str
-        Dome preset (:data:`btfcore.simulate.devices.DEVICE_NAMES`).
+        Dome preset (:data:`btfcore.dome.DEVICE_NAMES`).
     n_turntable : int or None
         Keep the first turntable positions (None: all).
     texture_size : int or None
@@ -748,7 +748,7 @@ CHROMA_MAX = 5.0
 
 def _to_rgb(x: np.ndarray) -> np.ndarray:
     """``from_log_yuv`` of a log-space reconstruction clipped to :data:`LOG_Y_MAX` / :data:`CHROMA_MAX`."""
-    from btfcore.colour import LOG_YUV_EPS
+    from btfcore.model.colour import LOG_YUV_EPS
 
     x = np.array(x, dtype=np.float32)
     np.clip(x[..., 0], np.log(LOG_YUV_EPS), LOG_Y_MAX, out=x[..., 0])
@@ -967,14 +967,14 @@ def overall_means(result: dict[str, Any], metric: str = "rel_l2_log_y") -> dict[
 
 
 def predicted_times(device: Device, sampling: dict[str, Any]) -> dict[str, Any]:
-    """Predicted acquisition times (btfcore.time_model) of the plans of the paper-4 strategies.
+    """Predicted acquisition times (btfcore.acquisition.time_model) of the plans of the paper-4 strategies.
 
     On the evaluated device (its turntable positions) and on the thesis' full
     dome (12 positions, the thesis' n_s = 400 pairs drawn at random: the time
     depends on the count, not on which pairs).
     """
-    from btfcore.plan import full_single_light_plan, multiplexed_plan, sparse_multiplexed_plan, sparse_plan
-    from btfcore.time_model import predict_time
+    from btfcore.acquisition.plan import full_single_light_plan, multiplexed_plan, sparse_multiplexed_plan, sparse_plan
+    from btfcore.acquisition.time_model import predict_time
 
     p4 = sampling["paper4"]
     n400 = str(THESIS_N_S[-1])
@@ -1000,8 +1000,8 @@ def predicted_times(device: Device, sampling: dict[str, Any]) -> dict[str, Any]:
         "sparse-multiplexed": predict_time(sparse_multiplexed_plan(full, draw(n_p))).total_s,
     }
     return {"evaluated_device_s": here, "thesis_device_s": thesis,
-            "exposure": "btfcore.plan.ExposureModel() defaults: single-light bracket 10, 100, 1000 ms; a pattern "
-                        "of m LEDs 1/m of it", "params": "btfcore.time_model.TimeModelParams() defaults"}
+            "exposure": "btfcore.acquisition.plan.ExposureModel() defaults: single-light bracket 10, 100, 1000 ms; a pattern "
+                        "of m LEDs 1/m of it", "params": "btfcore.acquisition.time_model.TimeModelParams() defaults"}
 
 
 def _verdict(ok: bool) -> str:
@@ -1155,7 +1155,7 @@ def abrdf_images(truth_path: str, stores: dict[str, str], geometry: Geometry, ou
                  ) -> dict[str, str]:
     """The centre texel's ABRDF (rows: views, columns: lights) of the truth and every reconstruction, PNG,
     tone-mapped with the truth's white point."""
-    from btfcore.tonemap import tonemap
+    from btfcore.render.tonemap import tonemap
     from tasks.report import save_png
 
     out = Path(out_dir)
@@ -1258,7 +1258,7 @@ def write_acquisition_report(out_dir: str | os.PathLike, summary: dict[str, Any]
                  "table": summary["tables"]["vmv_table1"]},
                 {"title": "Every strategy, means over all held-out materials",
                  "table": summary["tables"]["all_strategies"]},
-                {"title": "Predicted acquisition times [s] (btfcore.time_model)",
+                {"title": "Predicted acquisition times [s] (btfcore.acquisition.time_model)",
                  "table": [["strategy", "evaluated device [s]", "thesis device [h]"]] + [
                      [k, round(v, 1), round(summary["times"]["thesis_device_s"][k] / 3600, 3)]
                      for k, v in summary["times"]["evaluated_device_s"].items()]}]

@@ -48,8 +48,8 @@ from typing import Any, Callable
 import numpy as np
 import zarr
 
-from btfcore.demultiplex import demultiplex_operator
-from btfcore.ingest import IngestSettings, lv_directions, process_view, view_window
+from btfcore.capture.demultiplex import demultiplex_operator
+from btfcore.capture.view_chain import IngestSettings, lv_directions, process_view, view_window
 from tasks.integrity import create_array
 from tasks.radiometric import CALIBRATED_UNITS, Calibration
 from tasks.staging import begin_store, finish_store, staged_target, staging_path, store_attrs
@@ -282,7 +282,7 @@ def ingest_view(capture_path: str, out_path: str, settings: IngestSettings, t: i
 def _ingest_plan_view(capture: CaptureStore, capture_path: str, out_path: str, settings: IngestSettings, t: int,
                       c: int, calibration: Calibration | None, window: tuple) -> tuple[int, int]:
     """A view of a full plan capture whose brackets differ in length: merged per length, then demultiplexed."""
-    from btfcore.radiometric import apply_colour_matrix, apply_led_calibration
+    from btfcore.capture.radiometric import apply_colour_matrix, apply_led_calibration
     from tasks.measurement import process_brackets
 
     illum = np.arange(capture.n_illum)

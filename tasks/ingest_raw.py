@@ -28,7 +28,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from btfcore.simulate.devices import Device
+from btfcore.dome import Device
 from tasks.store import CaptureMetadata, CaptureStore, create_capture_store
 
 MANIFEST_COLUMNS = ("file", "turntable", "camera", "illumination", "exposure")

@@ -1,6 +1,6 @@
 """Plan captures and measurement stores: what a capture plan measured, as ``G B``.
 
-A capture executed from an acquisition plan (:mod:`btfcore.plan`, ``btf simulate
+A capture executed from an acquisition plan (:mod:`btfcore.acquisition.plan`, ``btf simulate
 --plan``) holds, per view, only the brackets the plan takes (the capture store's
 ``plan/shot``, docs/capture-store.md). When those brackets are a full set that
 separates every LED at every view (full single-light, full S-matrix, database
@@ -43,9 +43,9 @@ from typing import Any, Callable
 import numpy as np
 import zarr
 
-from btfcore.demultiplex import demultiplex_operator
-from btfcore.ingest import IngestSettings, lv_directions, process_view, view_window
-from btfcore.plan import CapturePlan
+from btfcore.capture.demultiplex import demultiplex_operator
+from btfcore.capture.view_chain import IngestSettings, lv_directions, process_view, view_window
+from btfcore.acquisition.plan import CapturePlan
 from tasks.integrity import create_array
 from tasks.staging import begin_store, finish_store, staged_target, staging_path
 from tasks.store import CaptureStore, bracket_steps, open_capture_store, to_json_attr
@@ -80,7 +80,7 @@ def plan_layout(plan: CapturePlan) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     Parameters
     ----------
     plan : CapturePlan
-        Validated against its device (:func:`btfcore.plan.validate_plan`).
+        Validated against its device (:func:`btfcore.acquisition.plan.validate_plan`).
 
     Returns
     -------
@@ -258,7 +258,7 @@ def process_brackets(frames: np.ndarray, exposure_time: np.ndarray, capture: Cap
     Parameters
     ----------
     frames : (k, n_exp, rows_w, cols_w) ndarray of uint16
-        The window (:func:`btfcore.ingest.view_window`) of ``k`` brackets of view ``(t, c)``.
+        The window (:func:`btfcore.capture.view_chain.view_window`) of ``k`` brackets of view ``(t, c)``.
     exposure_time : (k, n_exp) ndarray
         Seconds; a plan capture's shorter brackets end in zeros, which are left out.
 
@@ -480,7 +480,7 @@ def read_G(group: zarr.Group) -> "sparse.csr_matrix":
     S-matrix capture at the thesis' scale would take 5.5 GB)."""
     from scipy import sparse
 
-    from btfcore.measurement_operator import as_sparse_G
+    from btfcore.acquisition.measurement_operator import as_sparse_G
 
     arr = group["G"]
     step = max(1, int(arr.chunks[0]))

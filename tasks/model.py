@@ -12,7 +12,7 @@
 with ``basis`` one of
 
 * ``log_y``, ``u_y``, ``v_y``: the colour channels of paper 1 §3.1
-  (:func:`btfcore.colour.to_log_yuv`), ABRDF columns (one per texel);
+  (:func:`btfcore.model.colour.to_log_yuv`), ABRDF columns (one per texel);
 * ``abtf_log_y``: ``p x p`` ABTF patches of ``log_y`` (paper 1 §3.3),
   non-overlapping for fitting; per material and per class only, as in the thesis;
 * ``als``: relative-error weighted basis of the linear RGB BTF by
@@ -42,12 +42,12 @@ from typing import Any
 import numpy as np
 import zarr
 
-from btfcore._lowrank import RankError, TruncatedSVD
-from btfcore.abtf import blend_patches, patch_matrix, patch_rows
-from btfcore.als import als_basis
-from btfcore.colour import to_log_yuv
-from btfcore.eigenspace_merging import merge_eigenspaces
-from btfcore.truncated_svd import truncated_svd
+from btfcore.model._lowrank import RankError, TruncatedSVD
+from btfcore.model.abtf import blend_patches, patch_matrix, patch_rows
+from btfcore.model.als import als_basis
+from btfcore.model.colour import to_log_yuv
+from btfcore.model.eigenspace_merging import merge_eigenspaces
+from btfcore.model.truncated_svd import truncated_svd
 from tasks.integrity import create_array
 from tasks.staging import begin_store, finish_store
 from tasks.store import to_json_attr
@@ -220,8 +220,8 @@ def blocks(path: str, basis: str, patch: int = 3, max_bytes: int | None = None
     one block per texel band (:func:`_bands`; ``max_bytes`` bounds a band's float32 bytes).
 
     ``log_y``/``u_y``/``v_y``: one column per texel of that channel of
-    :func:`btfcore.colour.to_log_yuv`; ``abtf_log_y``: non-overlapping
-    ``patch x patch`` patches of ``log_y`` (:func:`btfcore.abtf.patch_matrix`);
+    :func:`btfcore.model.colour.to_log_yuv`; ``abtf_log_y``: non-overlapping
+    ``patch x patch`` patches of ``log_y`` (:func:`btfcore.model.abtf.patch_matrix`);
     ``als`` and ``rgb_svd``: linear RGB, one column per texel and channel.
 
     When the whole matrix fits in ``max_bytes`` its blocks are read and
@@ -429,7 +429,7 @@ def band_budget(settings: ModelSettings) -> int:
 
 def _fit_als(material: Material, c: int, settings: ModelSettings) -> TruncatedSVD:
     """The relative-error ALS basis (paper 4 eqs. 5-8) of a material's linear RGB BTF, streamed in texel
-    bands (:func:`btfcore.als.als_basis` on a block source): one pass estimates the weight floor, then
+    bands (:func:`btfcore.model.als.als_basis` on a block source): one pass estimates the weight floor, then
     one pass per iteration; ``norm_sq`` is accumulated by btfcore in the first of them."""
     bands = blocks(material.path, "als", max_bytes=band_budget(settings))
 

@@ -9,8 +9,8 @@ from typing import Any
 import numpy as np
 import zarr
 
-from btfcore.colour import to_log_yuv
-from btfcore.tonemap import tonemap
+from btfcore.model.colour import to_log_yuv
+from btfcore.render.tonemap import tonemap
 from tasks.model import Material, ModelSettings, merge_bases
 from tasks.report import pyplot, save_figure, save_png, write_html, write_json
 

@@ -1,8 +1,8 @@
 """Acquisition plans on disk: JSON (complete) and CSV (one row per shot).
 
-The JSON file holds the whole :class:`btfcore.plan.CapturePlan` -- device name
+The JSON file holds the whole :class:`btfcore.acquisition.plan.CapturePlan` -- device name
 and shape, strategy, parameters, shots -- plus the predicted acquisition time
-of :mod:`btfcore.time_model` with its breakdown and the model parameters used.
+of :mod:`btfcore.acquisition.time_model` with its breakdown and the model parameters used.
 The CSV file is the operator's list: one row per shot with the turntable angle,
 the LEDs on, the cameras, the shutter times and the number of exposure steps;
 a few ``# key: value`` comment lines above the header carry what is needed to
@@ -20,9 +20,9 @@ import math
 from pathlib import Path
 from typing import Any
 
-from btfcore.plan import PLAN_SCHEMA, CapturePlan, Shot, validate_plan
-from btfcore.simulate.devices import Device
-from btfcore.time_model import TimeModelParams, predict_time
+from btfcore.acquisition.plan import PLAN_SCHEMA, CapturePlan, Shot, validate_plan
+from btfcore.dome import Device
+from btfcore.acquisition.time_model import TimeModelParams, predict_time
 
 __all__ = ["CSV_COLUMNS", "plan_to_csv_text", "read_plan", "read_plan_json", "write_plan"]
 
@@ -72,7 +72,7 @@ def write_plan(plan: CapturePlan, path_json: str | Path, path_csv: str | Path | 
         Validate the plan against it first.
     time_params : TimeModelParams, optional
         Parameters of the time prediction (default
-        :class:`~btfcore.time_model.TimeModelParams` (), whose overheads are
+        :class:`~btfcore.acquisition.time_model.TimeModelParams` (), whose overheads are
         the fit on VMV Table 2's multiplexed times).
 
     Returns

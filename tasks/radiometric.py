@@ -4,20 +4,20 @@ An acquisition engineer captures the white standard on the dome like any
 sample (``btf simulate --classes white-standard`` does it on the virtual
 dome), ingests it uncalibrated (``btf ingest WHITE --out WHITE_BTF``), and
 then ingests every material with ``--white WHITE_BTF``: each view's textures
-are divided by the LED gains (:func:`btfcore.radiometric.apply_led_calibration`)
+are divided by the LED gains (:func:`btfcore.capture.radiometric.apply_led_calibration`)
 and, with ``--colour-matrix``, mapped by the camera's colour matrix.
 
 The gains are estimated out of core, one view chunk of the white store at a
-time: :func:`btfcore.radiometric.led_calibration` (a median over the view's
+time: :func:`btfcore.capture.radiometric.led_calibration` (a median over the view's
 texels) per view, then the median over views. The median of per-view
 medians is not the median over all samples, but it is as robust (a bad view
 or a few bad texels do not move it) and needs one chunk in memory.
 
 In the same pass the store is checked to be a white standard at all
-(:func:`btfcore.radiometric.white_texture_statistics`): flat in brightness
+(:func:`btfcore.capture.radiometric.white_texture_statistics`): flat in brightness
 and chromaticity under every LED, of one colour under an LED from every
 view. A store that is not (a leather BTF given as ``--white``) is refused
-before its gains calibrate anything (:data:`btfcore.radiometric.WHITE_TOLERANCES`).
+before its gains calibrate anything (:data:`btfcore.capture.radiometric.WHITE_TOLERANCES`).
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 import zarr
 
-from btfcore.radiometric import (
+from btfcore.capture.radiometric import (
     as_colour_matrix,
     led_calibration,
     white_standard_problems,
@@ -104,7 +104,7 @@ def led_gains_from_white(white_path: str | os.PathLike, albedo: float = WHITE_AL
     Returns
     -------
     gain : (n_leds, 3) ndarray of float64
-        Median over views of :func:`btfcore.radiometric.led_calibration`.
+        Median over views of :func:`btfcore.capture.radiometric.led_calibration`.
     info : dict
         Provenance: the store, its ingest hash, the albedo, the number of
         views, the largest relative spread of a gain across views and the
@@ -117,7 +117,7 @@ def led_gains_from_white(white_path: str | os.PathLike, albedo: float = WHITE_AL
         ``led_calibration``) NaN/Inf, an LED below the horizon or a
         non-positive gain (the message names the store, the view and the
         LED), or a store that is not a white standard: a statistic of
-        :func:`btfcore.radiometric.white_standard_statistics` above its
+        :func:`btfcore.capture.radiometric.white_standard_statistics` above its
         tolerance (the message names the store, the statistic, its value and
         the tolerance).
     """
@@ -162,13 +162,13 @@ def check_white_standard(white_path: str | os.PathLike, stats: dict[str, float])
     white_path : path
         The store (named in the message).
     stats : dict
-        From :func:`btfcore.radiometric.white_standard_statistics`.
+        From :func:`btfcore.capture.radiometric.white_standard_statistics`.
 
     Raises
     ------
     ValueError
         One line naming the store, each statistic above its tolerance of
-        :data:`btfcore.radiometric.WHITE_TOLERANCES` with its value, and what
+        :data:`btfcore.capture.radiometric.WHITE_TOLERANCES` with its value, and what
         to give instead.
     """
     problems = white_standard_problems(stats)

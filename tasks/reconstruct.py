@@ -3,9 +3,9 @@
 The input is a measurement store (``btf-measurement``, :mod:`tasks.measurement`,
 ``measured = G B``) or a demultiplexed BTF store (``btf-texture``, ``G = I``: the
 denoising methods). The solve operator is built once from the basis of the model
-store (``btf build-db``) and ``G`` -- :func:`btfcore.measurement_operator.measurement_solve_operator`
-for the linear ALS basis, :func:`btfcore.reconstruct.solve_operator` /
-:func:`btfcore.reconstruct.abtf_operator` on the measured rows for the log bases
+store (``btf build-db``) and ``G`` -- :func:`btfcore.acquisition.measurement_operator.measurement_solve_operator`
+for the linear ALS basis, :func:`btfcore.acquisition.reconstruct.solve_operator` /
+:func:`btfcore.acquisition.reconstruct.abtf_operator` on the measured rows for the log bases
 -- and applied band of texture rows by band in one Dask graph. The output is a
 ``btf-texture`` store, built beside its destination (``X.partial.zarr``) and
 renamed into place only once complete (:mod:`tasks.staging`): a failed or killed
@@ -47,16 +47,16 @@ import numpy as np
 import zarr
 from scipy import sparse
 
-from btfcore.colour import from_log_yuv, to_log_yuv
-from btfcore.radiometric import apply_colour_matrix, apply_led_calibration
-from btfcore.measurement_operator import (
+from btfcore.model.colour import from_log_yuv, to_log_yuv
+from btfcore.capture.radiometric import apply_colour_matrix, apply_led_calibration
+from btfcore.acquisition.measurement_operator import (
     as_sparse_G,
     demultiplexing_matrix,
     is_single_light,
     measurement_solve_operator,
     single_light_rows,
 )
-from btfcore.reconstruct import (
+from btfcore.acquisition.reconstruct import (
     LAMBDA_ALS,
     LAMBDA_NIELSEN,
     RECONSTRUCTION_METHODS,
@@ -93,8 +93,8 @@ class ReconstructSettings:
     method : {'pinv', 'tikhonov', 'direct', 'projection', 'thresholded'}
     lam : float, optional
         λ of :math:`\\lambda \\Sigma^{-1}`. ``tikhonov`` defaults to the thesis' value for the
-        basis (paper 4: :data:`~btfcore.reconstruct.LAMBDA_ALS` = 0.01 for ``als``,
-        :data:`~btfcore.reconstruct.LAMBDA_NIELSEN` = 40 for the log-space bases); ``direct``
+        basis (paper 4: :data:`~btfcore.acquisition.reconstruct.LAMBDA_ALS` = 0.01 for ``als``,
+        :data:`~btfcore.acquisition.reconstruct.LAMBDA_NIELSEN` = 40 for the log-space bases); ``direct``
         defaults to 0.
     k : int, optional
         Use only the first ``k`` basis vectors (default all).
@@ -369,7 +369,7 @@ def reconstruct_chunk(ops: dict[str, SolveOperator], measured: np.ndarray, *, ou
         From :func:`build_operators`.
     measured : (n_meas, rows, w, 3) ndarray
         Measured textures of the band (for an ABTF basis: of its halo rows,
-        :func:`btfcore.reconstruct.abtf_halo`, or the whole texture).
+        :func:`btfcore.acquisition.reconstruct.abtf_halo`, or the whole texture).
     out_rows, height : optional
         ABTF basis: the output rows and the texture height.
     correction : RowCorrection, optional

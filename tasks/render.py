@@ -1,6 +1,6 @@
 """Renderings of BTF stores under point and environment light (stage 12, *evaluate*).
 
-The I/O around :mod:`btfcore.btf_render`: reading a BTF store (Zarr) and an
+The I/O around :mod:`btfcore.render.btf_render`: reading a BTF store (Zarr) and an
 HDR environment map (OpenEXR), writing the tone-mapped rendering as a PNG.
 See ``docs/rendering.md``.
 """
@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 import zarr
 
-from btfcore.btf_render import (
+from btfcore.render.btf_render import (
     BTFLookup,
     Camera,
     DirectionalLight,
@@ -42,7 +42,7 @@ class Rendering:
     mask : (rows, cols) ndarray of bool
         Pixels that see the object.
     srgb : (rows, cols, 3) ndarray of uint8
-        Tone-mapped sRGB (:func:`btfcore.btf_render.to_srgb8`), RGB order.
+        Tone-mapped sRGB (:func:`btfcore.render.btf_render.to_srgb8`), RGB order.
     seconds : float
         Wall time of the rendering proper (geometry, look-ups, lights).
     png : Path or None
@@ -200,7 +200,7 @@ def render_store(
     shape : {'sphere', 'cylinder', 'plane'}
     light : PointLight or DirectionalLight, optional
         A light; when neither ``light`` nor ``env`` is given, the default
-        :class:`~btfcore.btf_render.PointLight` (upper right front,
+        :class:`~btfcore.render.btf_render.PointLight` (upper right front,
         irradiance 1 at the origin).
     env : path, (H, W, 3) ndarray or None
         Latitude-longitude HDR map (an EXR file or its array), reduced to
@@ -212,7 +212,7 @@ def render_store(
     camera : Camera, optional
         Overrides ``image_size``.
     tiles : float
-        Texture tiles across the object's width (:func:`~btfcore.btf_render.surface_geometry`).
+        Texture tiles across the object's width (:func:`~btfcore.render.btf_render.surface_geometry`).
     spatial : {'bilinear', 'nearest'}
         Texel look-up.
     env_lights_shape : (n_theta, n_phi)

@@ -16,9 +16,9 @@ import cv2
 import numpy as np
 
 from btfcore.simulate.camera import homography_sample_mask
-from btfcore.simulate.devices import Device
+from btfcore.dome import Device
 from btfcore.simulate.sensor import WELL_EXPOSED
-from btfcore.tonemap import srgb_encode, tonemap
+from btfcore.render.tonemap import srgb_encode, tonemap
 from tasks.store import CaptureStore, open_capture_store
 
 #: Rows of the ground truth read for statistics (a subsample keeps reports cheap

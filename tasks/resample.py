@@ -3,10 +3,10 @@
 A BTF store written by ``btf ingest`` ("btf-texture", rows flattened over
 (turntable, camera, light) in the dome's own directions) is resampled to a
 target sampling, the Cartesian product of a light set and a view set: the
-UBO2014 151 x 151 set (:func:`btfcore.resample.ubo2014_directions`) or a
+UBO2014 151 x 151 set (:func:`btfcore.capture.resample.ubo2014_directions`) or a
 user's JSON file ``{"light_dirs": [[x, y, z], ...], "view_dirs": [...]}``.
 
-The weights ``W`` ``(n_dst, n_src)`` (:func:`btfcore.resample.resample_weights`,
+The weights ``W`` ``(n_dst, n_src)`` (:func:`btfcore.capture.resample.resample_weights`,
 at most 9 non-zeros per row) are built once in the driver. The output store is
 written by one Dask task per group of target views: a task reads only the
 source rows its rows of ``W`` use (chunk by chunk, so only the source views it
@@ -32,7 +32,7 @@ import numpy as np
 import scipy.sparse as sp
 import zarr
 
-from btfcore.resample import (
+from btfcore.capture.resample import (
     lv_outside_hull,
     lv_product,
     resample,
@@ -293,7 +293,7 @@ def create_resampled_store(path: str | os.PathLike, source_path: str | os.PathLi
         :func:`resample_hash` of source and sampling.
     outside_view, outside_light : (n_v * n_l,) ndarray of bool
         Rows whose target view / light lies outside the measured hull
-        (:func:`btfcore.resample.lv_outside_hull`).
+        (:func:`btfcore.capture.resample.lv_outside_hull`).
 
     Returns
     -------
@@ -323,7 +323,7 @@ def create_resampled_store(path: str | os.PathLike, source_path: str | os.PathLi
         "lv_order": ["view", "light"], "texture_shape": [h, w], "views_lights": [n_v, n_l],
         "sampling": sampling.name, "resampled_from": resampled_from, "resample_hash": key,
         "method": "barycentric interpolation on Delaunay triangulations in the parabolic map, "
-                  "per-view light triangulation (btfcore.resample.resample_weights); outside the "
+                  "per-view light triangulation (btfcore.capture.resample.resample_weights); outside the "
                   "measured hull the nearest hull point's weights",
         "outside_hull": {"rows": int(outside.sum()), "view": int(outside_view.sum()),
                          "light": int(outside_light.sum())},

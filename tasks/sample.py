@@ -1,6 +1,6 @@
 """Sparse sampling of a model-store basis (``btf sample``): read the basis, choose rows, write JSON.
 
-The numerics are :mod:`btfcore.sampling`; this module reads a class basis
+The numerics are :mod:`btfcore.acquisition.sampling`; this module reads a class basis
 from a ``btf-model`` store (``btf build-db``), builds the camera-parallel
 groups from the store's light/view sampling (or a device's row order), runs
 the sampler and writes the result as a ``btf-samples`` JSON file that
@@ -19,8 +19,8 @@ from typing import Any
 import numpy as np
 import zarr
 
-from btfcore.sampling import SAMPLING_METHODS, select_samples
-from btfcore.simulate.devices import Device
+from btfcore.acquisition.sampling import SAMPLING_METHODS, select_samples
+from btfcore.dome import Device
 from tasks.model import SCHEMA_NAME, read_basis
 
 __all__ = [

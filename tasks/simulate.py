@@ -22,10 +22,10 @@ from typing import Any, Callable
 import numpy as np
 
 import btfcore
-from btfcore.hadamard import multiplexing_patterns
-from btfcore.plan import CapturePlan, validate_plan
+from btfcore.acquisition.hadamard import multiplexing_patterns
+from btfcore.acquisition.plan import CapturePlan, validate_plan
 from btfcore.simulate.camera import holder_radiance, render_frame, sample_mask
-from btfcore.simulate.devices import DEVICE_NAMES, Device, get_device
+from btfcore.dome import DEVICE_NAMES, Device, get_device
 from btfcore.simulate.materials import MATERIAL_CLASSES, MaterialMaps, make_material, white_standard
 from btfcore.simulate.render import downsample2, horizon_map, render_view
 from btfcore.simulate.sensor import choose_bracket, dark_current_map, dark_frames, expose
@@ -55,7 +55,7 @@ class SimulationConfig:
     Parameters
     ----------
     device : str
-        One of :data:`btfcore.simulate.devices.DEVICE_NAMES`.
+        One of :data:`btfcore.dome.DEVICE_NAMES`.
     n_materials : int
         Materials to simulate; classes are assigned round-robin over ``classes``.
     seed : int
@@ -115,7 +115,7 @@ class SimulationConfig:
             raise ValueError("invalid simulation config: " + "; ".join(problems))
         if self.plan is not None:
             if not isinstance(self.plan, CapturePlan):
-                raise ValueError(f"plan must be a btfcore.plan.CapturePlan, got {type(self.plan).__name__}")
+                raise ValueError(f"plan must be a btfcore.acquisition.plan.CapturePlan, got {type(self.plan).__name__}")
             if self.plan.device != self.device:
                 raise ValueError(f"the plan was made for device {self.plan.device!r}, the simulation is of "
                                  f"{self.device!r}; pass --device {self.plan.device} or plan for {self.device}")

@@ -249,7 +249,7 @@ class CaptureMetadata:
         plus free extra keys (plain JSON).
     plan : dict, optional
         A capture executed from an acquisition plan: the plan's plain-JSON
-        form (:meth:`btfcore.plan.CapturePlan.to_dict`), kept in the store's
+        form (:meth:`btfcore.acquisition.plan.CapturePlan.to_dict`), kept in the store's
         ``plan`` group.
     plan_shot : (n_turn, n_cam, n_illum) ndarray of int, optional
         With ``plan``: the plan's shot index of each bracket ``(t, c, i)``,

@@ -17,7 +17,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from btfcore.simulate.devices import Device
+from btfcore.dome import Device
 
 __all__ = ["holder_radiance", "render_frame", "sample_corners_px", "sample_mask"]
 

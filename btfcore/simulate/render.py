@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .materials import MaterialMaps
+from btfcore.simulate.materials import MaterialMaps
 
 __all__ = [
     "LED_ANGULAR_RADIUS_DEG",

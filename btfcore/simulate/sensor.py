@@ -35,7 +35,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy import ndimage
 
-from btfcore.simulate.devices import BAYER_PATTERNS, SensorSpec
+from btfcore.dome import BAYER_PATTERNS, SensorSpec
 
 __all__ = [
     "BracketReport",

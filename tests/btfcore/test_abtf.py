@@ -7,7 +7,7 @@ import itertools
 import numpy as np
 import pytest
 
-from btfcore.abtf import blend_patches, patch_grid, patch_matrix, patch_rows
+from btfcore.model.abtf import blend_patches, patch_grid, patch_matrix, patch_rows
 
 
 def _btf(shape, dtype=np.float64, seed=0):

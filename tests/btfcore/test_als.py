@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from btfcore.als import FLOOR_SAMPLE, WEIGHT_FLOOR_FRACTION, ALSResult, als_basis, merge_als_bases, relative_error_weights
+from btfcore.model.als import FLOOR_SAMPLE, WEIGHT_FLOOR_FRACTION, ALSResult, als_basis, merge_als_bases, relative_error_weights
 
 N_LV, N_TX = 300, 2000
 

@@ -1,4 +1,4 @@
-"""Tests of btfcore.btf_render (BTF renderings on a sphere, a cylinder and a plane)."""
+"""Tests of btfcore.render.btf_render (BTF renderings on a sphere, a cylinder and a plane)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from btfcore.btf_render import (
+from btfcore.render.btf_render import (
     BTFLookup,
     Camera,
     DirectionalLight,
@@ -19,8 +19,8 @@ from btfcore.btf_render import (
     surface_geometry,
     to_srgb8,
 )
-from btfcore.resample import lv_product, resample_weights
-from btfcore.simulate.devices import get_device
+from btfcore.capture.resample import lv_product, resample_weights
+from btfcore.dome import get_device
 
 ALBEDO = np.array([0.6, 0.4, 0.2])
 

@@ -8,7 +8,7 @@ import pytest
 from scipy import ndimage
 
 from btfcore.simulate.camera import holder_radiance, render_frame, sample_corners_px, sample_mask
-from btfcore.simulate.devices import get_device
+from btfcore.dome import get_device
 
 
 def _checker(n_tex: int, squares: int, lo=0.2, hi=1.0) -> np.ndarray:

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from btfcore.colour import (
+from btfcore.model.colour import (
     cos_weight,
     from_log_yuv,
     log_luminance,

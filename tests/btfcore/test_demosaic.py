@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 import pytest
 
-from btfcore.demosaic import (
+from btfcore.capture.demosaic import (
     DEMOSAICING_METHODS,
     demosaic,
     demosaicing_CFA_Bayer_bilinear,

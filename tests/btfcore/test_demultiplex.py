@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from btfcore.demultiplex import (
+from btfcore.capture.demultiplex import (
     demultiplex,
     demultiplex_operator,
     demultiplexed_noise_std,
@@ -13,7 +13,7 @@ from btfcore.demultiplex import (
     s_matrix_inverse,
     snr_gain,
 )
-from btfcore.hadamard import is_s_matrix_order, multiplexing_patterns, s_matrix
+from btfcore.acquisition.hadamard import is_s_matrix_order, multiplexing_patterns, s_matrix
 
 ORDERS = [n for n in range(200) if is_s_matrix_order(n)]
 

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from btfcore.simulate.devices import (
+from btfcore.dome import (
     DEVICE_NAMES,
     UBO_DOME1_RINGS,
     Device,

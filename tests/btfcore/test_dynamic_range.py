@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from btfcore.simulate.devices import get_device
+from btfcore.dome import get_device
 from btfcore.simulate.materials import MATERIAL_CLASSES, make_material
 from btfcore.simulate.render import downsample2, horizon_map, render_view
 

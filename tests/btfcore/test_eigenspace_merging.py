@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from _lowrank_cases import orthonormal
 
-from btfcore.eigenspace_merging import merge_eigenspaces, merge_tree
-from btfcore.truncated_svd import truncated_svd
+from btfcore.model.eigenspace_merging import merge_eigenspaces, merge_tree
+from btfcore.model.truncated_svd import truncated_svd
 
 N_LV = 300
 CLASSES = ["leather"] * 3 + ["wood"] * 3 + ["stone"] * 2

@@ -9,7 +9,7 @@ import pytest
 from _lowrank_cases import assert_meets_bars, decaying, exact_svd, max_angle, uneven_blocks
 
 from btfcore import BtfWarning
-from btfcore.empca import empca
+from btfcore.model.empca import empca
 
 K = 20
 

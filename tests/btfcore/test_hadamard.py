@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from btfcore.hadamard import is_s_matrix_order, multiplexing_patterns, s_matrix, smallest_s_matrix_order
+from btfcore.acquisition.hadamard import is_s_matrix_order, multiplexing_patterns, s_matrix, smallest_s_matrix_order
 
 VALID = [3, 7, 11, 19, 23, 31, 43, 47, 59, 67, 71, 79, 83, 103, 107, 127, 131, 139, 151, 163, 167, 179, 191, 199]
 

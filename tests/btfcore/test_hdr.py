@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from btfcore.hdr import (
+from btfcore.capture.hdr import (
     LDR_SIZE,
     dark_per_exposure,
     merge,
@@ -20,7 +20,7 @@ from btfcore.hdr import (
     response_robertson,
     weights_debevec,
 )
-from btfcore.simulate.devices import SensorSpec
+from btfcore.dome import SensorSpec
 from btfcore.simulate.sensor import choose_bracket, dark_current_map, dark_frames, expose, signal_rate
 
 MARGIN = 0.98          # merge_linear's default saturation margin
@@ -568,7 +568,7 @@ def test_frobisher_robertson_pipeline_agrees_with_opencv(frobisher):
 
 @pytest.mark.parametrize("block", [7, 64, 1 << 20])
 def test_merge_linear_does_not_depend_on_its_block_size(block, monkeypatch):
-    import btfcore.hdr as hdr
+    import btfcore.capture.hdr as hdr
 
     spec = SPECS["12bit-3exp"]
     sim = _simulate(spec, seed=11)

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from btfcore.colour import to_log_yuv
+from btfcore.model.colour import to_log_yuv
 from btfcore.metrics import mpsnr, mre, mrmse, psnr, relative_error, texture_errors
 
 

@@ -1,13 +1,13 @@
-"""Capture-plan strategies, exposure model and validation (btfcore.plan)."""
+"""Capture-plan strategies, exposure model and validation (btfcore.acquisition.plan)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from btfcore.demultiplex import demultiplex_operator
-from btfcore.hadamard import multiplexing_patterns, s_matrix
-from btfcore.plan import (
+from btfcore.capture.demultiplex import demultiplex_operator
+from btfcore.acquisition.hadamard import multiplexing_patterns, s_matrix
+from btfcore.acquisition.plan import (
     CapturePlan,
     ExposureModel,
     Shot,
@@ -19,7 +19,7 @@ from btfcore.plan import (
     sparse_plan,
     validate_plan,
 )
-from btfcore.simulate.devices import get_device
+from btfcore.dome import get_device
 
 
 @pytest.fixture(scope="module")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from btfcore.radiometric import (
+from btfcore.capture.radiometric import (
     WHITE_TOLERANCES,
     apply_colour_matrix,
     apply_led_calibration,
@@ -15,7 +15,7 @@ from btfcore.radiometric import (
     white_standard_statistics,
     white_texture_statistics,
 )
-from btfcore.simulate.devices import get_device
+from btfcore.dome import get_device
 from btfcore.simulate.materials import MATERIAL_CLASSES, make_material, white_standard
 from btfcore.simulate.render import horizon_map, render_view
 

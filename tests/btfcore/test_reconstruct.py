@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from btfcore.abtf import blend_patches, patch_matrix
-from btfcore.demultiplex import demultiplex
-from btfcore.hadamard import multiplexing_patterns
-from btfcore.reconstruct import (
+from btfcore.model.abtf import blend_patches, patch_matrix
+from btfcore.capture.demultiplex import demultiplex
+from btfcore.acquisition.hadamard import multiplexing_patterns
+from btfcore.acquisition.reconstruct import (
     LAMBDA_ALS,
     LAMBDA_NIELSEN,
     abtf_halo,

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from btfcore.rectify import (
+from btfcore.capture.rectify import (
     RECTIFY_METHODS,
     apply_rectification,
     auto_supersample,
@@ -27,7 +27,7 @@ from btfcore.rectify import (
     texture_homography,
 )
 from btfcore.simulate.camera import render_frame, sample_corners_px
-from btfcore.simulate.devices import get_device
+from btfcore.dome import get_device
 
 S_M = 0.05
 BACKGROUND = np.full((1, 3), 0.01, dtype=np.float32)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from btfcore.resample import (
+from btfcore.capture.resample import (
     barycentric_weights,
     lv_outside_hull,
     lv_product,
@@ -17,7 +17,7 @@ from btfcore.resample import (
     ubo2014_directions,
     unique_directions,
 )
-from btfcore.simulate.devices import get_device, spherical_to_cartesian
+from btfcore.dome import get_device, spherical_to_cartesian
 
 
 def _random_dirs(rng, n, theta_max_deg=80.0):

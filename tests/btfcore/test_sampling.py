@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from btfcore.abtf import patch_matrix
-from btfcore.hadamard import multiplexing_patterns
-from btfcore.resample import lv_product, parabolic_map, ubo2014_directions
-from btfcore.sampling import (
+from btfcore.model.abtf import patch_matrix
+from btfcore.acquisition.hadamard import multiplexing_patterns
+from btfcore.capture.resample import lv_product, parabolic_map, ubo2014_directions
+from btfcore.acquisition.sampling import (
     SamplingResult,
     greedy,
     multiplexed_basis,

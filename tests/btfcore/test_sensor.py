@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from btfcore.simulate.devices import BAYER_PATTERNS, SensorSpec
+from btfcore.dome import BAYER_PATTERNS, SensorSpec
 from btfcore.simulate.sensor import (
     WELL_EXPOSED,
     apply_psf,

@@ -1,4 +1,4 @@
-"""Acquisition-time model (btfcore.time_model): equations and the bar against the thesis' published times."""
+"""Acquisition-time model (btfcore.acquisition.time_model): equations and the bar against the thesis' published times."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from btfcore.plan import CapturePlan, ExposureModel, Shot, full_single_light_plan, multiplexed_plan
-from btfcore.simulate.devices import get_device
-from btfcore.time_model import (
+from btfcore.acquisition.plan import CapturePlan, ExposureModel, Shot, full_single_light_plan, multiplexed_plan
+from btfcore.dome import get_device
+from btfcore.acquisition.time_model import (
     DEFAULT_FIT_ON,
     PUBLISHED_FIGURES,
     VMV_TABLE2,

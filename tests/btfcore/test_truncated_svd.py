@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from _lowrank_cases import assert_meets_bars, decaying, exact_svd, orthonormal, uneven_blocks
 
-from btfcore.truncated_svd import choose_method, column_blocks, truncated_svd
+from btfcore.model.truncated_svd import choose_method, column_blocks, truncated_svd
 
 K = 20
 ITERATIVE = ["randomized", "empca"]

@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 import zarr
 
-from btfcore.simulate.devices import get_device
+from btfcore.dome import get_device
 from tasks.simulate import SimulationConfig, simulate_database
 
 

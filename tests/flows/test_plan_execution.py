@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import zarr
 
-from btfcore.plan import (
+from btfcore.acquisition.plan import (
     ExposureModel,
     bootstrapping_plan,
     full_single_light_plan,
@@ -17,7 +17,7 @@ from btfcore.plan import (
     sparse_multiplexed_plan,
     sparse_plan,
 )
-from btfcore.simulate.devices import get_device
+from btfcore.dome import get_device
 from tasks.plan import write_plan
 
 EXPOSURE = ExposureModel(single_ms=(1.0, 10.0, 100.0, 1000.0))   # spans the tiny sensor's radiance range

@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 import zarr
 
-from btfcore._lowrank import TruncatedSVD
-from btfcore.resample import lv_product
-from btfcore.simulate.devices import get_device
+from btfcore.model._lowrank import TruncatedSVD
+from btfcore.capture.resample import lv_product
+from btfcore.dome import get_device
 from flows.cli import EXIT_BAD_INPUT, main
 from tasks.model import SCHEMA_NAME, write_basis
 from tasks.plan import read_plan

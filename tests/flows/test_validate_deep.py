@@ -28,7 +28,7 @@ def all_checksummed(path: Path) -> list[str]:
 @pytest.fixture(scope="module")
 def stores(tiny_btf, tmp_path_factory) -> dict[str, Path]:
     """The session's capture, its BTF store and a model store (class ``leather``, k = 8) fitted on it."""
-    from btfcore._lowrank import TruncatedSVD
+    from btfcore.model._lowrank import TruncatedSVD
     from tasks.model import discover, open_model_store, write_basis
 
     capture = next(p for p in tiny_btf.parent.glob("*.zarr")

@@ -1,4 +1,4 @@
-"""Property-based tests (Hypothesis) of the colour transforms and ABTF patches (btfcore.colour, btfcore.abtf)."""
+"""Property-based tests (Hypothesis) of the colour transforms and ABTF patches (btfcore.model.colour, btfcore.model.abtf)."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from btfcore.abtf import blend_patches, patch_grid, patch_matrix, patch_rows
-from btfcore.colour import from_log_yuv, nielsen_map, nielsen_unmap, rgb_to_yuv, to_log_yuv, yuv_to_rgb
+from btfcore.model.abtf import blend_patches, patch_grid, patch_matrix, patch_rows
+from btfcore.model.colour import from_log_yuv, nielsen_map, nielsen_unmap, rgb_to_yuv, to_log_yuv, yuv_to_rgb
 
 pixels = st.integers(1, 6).map(lambda n: (n, 3))
 radiance = st.floats(-1e6, 1e6, allow_subnormal=False)

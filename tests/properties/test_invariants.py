@@ -9,10 +9,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from btfcore.hadamard import is_s_matrix_order, s_matrix, smallest_s_matrix_order
+from btfcore.acquisition.hadamard import is_s_matrix_order, s_matrix, smallest_s_matrix_order
 from btfcore.simulate.render import downsample2
 from btfcore.simulate.sensor import bayer_channel_index, mosaic
-from btfcore.tonemap import tonemap
+from btfcore.render.tonemap import tonemap
 from tasks.store import to_json_attr
 
 VALID_ORDERS = [n for n in range(3, 200) if is_s_matrix_order(n)]

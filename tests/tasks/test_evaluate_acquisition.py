@@ -1,4 +1,4 @@
-"""Acquisition evaluation (tasks.evaluate_acquisition, btfcore.noise): noise model, chunked = in-memory, bad input."""
+"""Acquisition evaluation (tasks.evaluate_acquisition, btfcore.acquisition.noise): noise model, chunked = in-memory, bad input."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 import zarr
 
 from btfcore.metrics import mpsnr, mre, mrmse, relative_error
-from btfcore.noise import SensorNoise, expose, exposure_gain, noise_moments
+from btfcore.acquisition.noise import SensorNoise, expose, exposure_gain, noise_moments
 
 CONFIG_KW = dict(device="tiny", n_turntable=None, texture_size=12, materials_per_class=2,
                  classes=("carpet", "stone"), sampling_steps=200, als_iterations=3, band_rows=4)
@@ -40,7 +40,7 @@ def test_exposure_refuses_a_black_image():
 
 
 def test_multiplexed_images_get_shorter_exposures():
-    from btfcore.hadamard import multiplexing_patterns
+    from btfcore.acquisition.hadamard import multiplexing_patterns
     from tasks.evaluate_acquisition import Geometry, multiplex
 
     rng = np.random.default_rng(0)
@@ -73,8 +73,8 @@ def tiny_eval(tmp_path_factory, dask_client):
 
 
 def _setup(config, out, materials, material_id):
-    from btfcore.hadamard import multiplexing_patterns
-    from btfcore.noise import SensorNoise
+    from btfcore.acquisition.hadamard import multiplexing_patterns
+    from btfcore.acquisition.noise import SensorNoise
     from tasks.evaluate_acquisition import (
         _gains, _geometry, _operators, _reduce_max, _reduce_variance, band_maxima, band_variance, bands)
 
@@ -101,7 +101,7 @@ def test_truth_stores_are_a_database(tiny_eval):
 
 
 def test_variance_over_bands_equals_the_whole_texture(tiny_eval):
-    from btfcore.reconstruct import texture_variance
+    from btfcore.acquisition.reconstruct import texture_variance
     from tasks.evaluate_acquisition import (
         _geometry, _read_rows, _reduce_variance, band_variance, demultiplex_views, noisy_rows)
     config, out, materials = tiny_eval
@@ -173,7 +173,7 @@ def test_denoising_reduces_the_demultiplexed_error(tiny_eval):
 def test_vmv_denoising_is_linear_on_the_class_truncated_svd(tiny_eval):
     """VMV §4.1: projection U Uᵀ B and thresholded U Ũ⁺ B̃ on the class' truncated SVD of linear RGB, rows
     above the 9th decile of the linear demultiplexed variance left out; both reproduce a BTF in the basis."""
-    from btfcore.reconstruct import apply, threshold_rows
+    from btfcore.acquisition.reconstruct import apply, threshold_rows
     from tasks.evaluate_acquisition import leave_one_out_bases
     from tasks.model import LINEAR_SVD
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import zarr
 
-from btfcore.ingest import IngestSettings, process_view
+from btfcore.capture.view_chain import IngestSettings, process_view
 from tasks.ingest import btf_error_against_truth, ingest_capture
 from tasks.simulate import SimulationConfig, simulate_database
 from tasks.store import open_capture_store
@@ -111,7 +111,7 @@ def test_error_against_truth_is_reported(capture, tmp_path, dask_client):
 def test_white_standard_capture_calibrates_the_leds_and_the_ingest(capture, tmp_path, dask_client):
     """The simulator captures a white standard; its ingest yields each LED's gain, and `btf ingest
     --white` brings a material to the truth's unit (issue 3, item 4)."""
-    from btfcore.radiometric import led_calibration
+    from btfcore.capture.radiometric import led_calibration
     from tasks.radiometric import load_calibration
 
     config = SimulationConfig(device="tiny", n_materials=1, seed=2, classes=("white-standard",), n_turntable=1)

@@ -7,7 +7,7 @@ import csv
 import numpy as np
 import pytest
 
-from btfcore.simulate.devices import get_device
+from btfcore.dome import get_device
 from tasks.ingest_raw import RawImportError, import_raw, plan_raw_import, probe_raw_file
 from tasks.shared_data import shared_file
 from tasks.store import open_capture_store

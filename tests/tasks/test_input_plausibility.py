@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import zarr
 
-from btfcore.radiometric import WHITE_TOLERANCES
+from btfcore.capture.radiometric import WHITE_TOLERANCES
 from tasks.radiometric import load_calibration
 from tasks.reconstruct import ReconstructSettings, check_inputs
 

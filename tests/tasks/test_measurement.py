@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 import zarr
 
-from btfcore.colour import from_log_yuv
-from btfcore.hadamard import multiplexing_patterns
-from btfcore.measurement_operator import demultiplexing_matrix, measurement_solve_operator
-from btfcore.plan import ExposureModel, sparse_multiplexed_plan
-from btfcore.reconstruct import apply, measurement_matrix, solve_operator
-from btfcore.simulate.devices import get_device
+from btfcore.model.colour import from_log_yuv
+from btfcore.acquisition.hadamard import multiplexing_patterns
+from btfcore.acquisition.measurement_operator import demultiplexing_matrix, measurement_solve_operator
+from btfcore.acquisition.plan import ExposureModel, sparse_multiplexed_plan
+from btfcore.acquisition.reconstruct import apply, measurement_matrix, solve_operator
+from btfcore.dome import get_device
 from tasks.measurement import plan_layout, write_measurement
 from tasks.reconstruct import ReconstructSettings, check_inputs, open_model, reconstruct_chunk, reconstruct_store
 
@@ -187,7 +187,7 @@ def test_tikhonov_defaults_to_the_thesis_lambda_of_the_basis():
 def test_radiometric_correction_of_an_uncorrected_measurement(tmp_path, dask_client, case):
     """A corrected BTF in the basis' span, measured uncorrected (``G D_c B_c``, then the inverse colour
     matrix): ``--white``/``--colour-matrix`` at reconstruction give the corrected BTF back."""
-    from btfcore.radiometric import apply_colour_matrix
+    from btfcore.capture.radiometric import apply_colour_matrix
     from tasks.radiometric import Calibration
     from tasks.reconstruct import RowCorrection, build_operators
 
@@ -241,10 +241,10 @@ def test_radiometric_correction_of_an_uncorrected_measurement(tmp_path, dask_cli
 
 
 def test_sparse_G_gives_the_dense_results():
-    """Every function of btfcore.measurement_operator takes G dense or sparse alike (tasks read G sparse)."""
+    """Every function of btfcore.acquisition.measurement_operator takes G dense or sparse alike (tasks read G sparse)."""
     from scipy import sparse
 
-    from btfcore.measurement_operator import is_single_light, single_light_rows
+    from btfcore.acquisition.measurement_operator import is_single_light, single_light_rows
 
     rng = np.random.default_rng(6)
     U, sigma = _orthonormal(rng, N_LV, 6)
@@ -276,7 +276,7 @@ def test_sparse_G_gives_the_dense_results():
 def test_colour_matrix_alone_on_a_multiplexed_measurement(tmp_path, affine):
     """Without LED gains a linear colour matrix is applied before the solve (it commutes with G); an affine
     one after it, per channel (its offset does not commute with G). Both give the corrected BTF back."""
-    from btfcore.radiometric import apply_colour_matrix
+    from btfcore.capture.radiometric import apply_colour_matrix
     from tasks.reconstruct import RowCorrection, build_operators
 
     rng = np.random.default_rng(7)

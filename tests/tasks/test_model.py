@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import zarr
 
-from btfcore.abtf import blend_patches, patch_matrix
-from btfcore.colour import to_log_yuv
+from btfcore.model.abtf import blend_patches, patch_matrix
+from btfcore.model.colour import to_log_yuv
 from tasks.model import _bands, abtf_projection_errors, blocks, work_budget
 
 

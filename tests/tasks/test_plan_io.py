@@ -8,9 +8,9 @@ import json
 import numpy as np
 import pytest
 
-from btfcore.plan import ExposureModel, bootstrapping_plan, multiplexed_plan, sparse_multiplexed_plan, sparse_plan
-from btfcore.simulate.devices import get_device
-from btfcore.time_model import TimeModelParams, predict_time, thesis_exposure
+from btfcore.acquisition.plan import ExposureModel, bootstrapping_plan, multiplexed_plan, sparse_multiplexed_plan, sparse_plan
+from btfcore.dome import get_device
+from btfcore.acquisition.time_model import TimeModelParams, predict_time, thesis_exposure
 from tasks.plan import CSV_COLUMNS, read_plan, read_plan_json, write_plan
 
 

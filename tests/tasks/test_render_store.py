@@ -10,8 +10,8 @@ import OpenEXR
 import pytest
 import zarr
 
-from btfcore.btf_render import Camera, DirectionalLight, PointLight
-from btfcore.resample import lv_product
+from btfcore.render.btf_render import Camera, DirectionalLight, PointLight
+from btfcore.capture.resample import lv_product
 from tasks.render import load_env_map, open_btf_store, render_store
 from tasks.shared_data import shared_file
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import zarr
 
-from btfcore.resample import (
+from btfcore.capture.resample import (
     lv_outside_hull,
     lv_product,
     parabolic_map,
@@ -18,7 +18,7 @@ from btfcore.resample import (
     resample_weights,
     ubo2014_directions,
 )
-from btfcore.simulate.devices import get_device
+from btfcore.dome import get_device
 import tasks.resample
 from tasks.resample import load_sampling, resample_store
 from tasks.staging import staging_path, trash_path

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import zarr
 
-from btfcore._lowrank import TruncatedSVD
-from btfcore.sampling import selection_condition
-from btfcore.simulate.devices import get_device
+from btfcore.model._lowrank import TruncatedSVD
+from btfcore.acquisition.sampling import selection_condition
+from btfcore.dome import get_device
 from tasks.model import SCHEMA_NAME, write_basis
 from tasks.sample import (
     camera_parallel_groups,
@@ -131,7 +131,7 @@ def test_errors_name_the_store_and_the_fix(model, tmp_path):
 
 
 def test_groups_of_a_resampled_sampling_are_lights_with_all_views():
-    from btfcore.resample import lv_product, ubo2014_directions
+    from btfcore.capture.resample import lv_product, ubo2014_directions
 
     d = ubo2014_directions()[:10]
     L, V = lv_product(d, d)                                            # view-major, light fastest

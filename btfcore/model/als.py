@@ -34,7 +34,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from ._lowrank import Blocks, BlockSource, _as_block, as_block_source, check_finite, for_each_block
+from btfcore.model._lowrank import Blocks, BlockSource, _as_block, as_block_source, check_finite, for_each_block
 
 __all__ = [
     "ALS_BACKENDS",
@@ -416,7 +416,7 @@ def als_basis(
         channels), finite: in memory, or out of core as its column blocks,
         i.e. a callable returning a fresh iterator over ``(n_lv, m_j)``
         blocks on every call, or a list/tuple of such arrays (the
-        convention of :mod:`btfcore.truncated_svd`). A block source is read
+        convention of :mod:`btfcore.model.truncated_svd`). A block source is read
         once per iteration plus once more for the default ``floor``.
     c : int
         Rank of the model, ``1 <= c <= min(n_lv, n_tx)``.
@@ -647,7 +647,7 @@ def merge_als_bases(
     .. math:: U \\Sigma V^T = (U^{(1)} \\Sigma^{(1)}, \\dots, U^{(n)} \\Sigma^{(n)})
 
     truncated to ``k`` (eq. 9), "cheap when the database is relatively
-    small". General eigenspace merging (:mod:`btfcore.eigenspace_merging`)
+    small". General eigenspace merging (:mod:`btfcore.model.eigenspace_merging`)
     can take this over for large databases.
     """
     if len(bases) == 0:

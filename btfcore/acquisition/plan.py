@@ -5,7 +5,7 @@ device executes. One shot is one illumination pattern at one turntable
 position, captured by a set of cameras (in a dome all cameras fire at once)
 with an exposure bracket of one or more shutter times. The plan is pure data:
 it names LEDs, cameras and turntable positions by their index in a
-:class:`~btfcore.simulate.devices.Device`, and :func:`validate_plan` checks
+:class:`~btfcore.dome.Device`, and :func:`validate_plan` checks
 that the device has them.
 
 Strategies (functions returning a plan for a device)
@@ -31,7 +31,7 @@ a rule for a pattern with ``m`` LEDs on (by default the bracket scaled by
 ``1 / m``; measured brackets can be given per ``m``).
 
 The plan's JSON/CSV form is written by :mod:`tasks.plan`; the predicted
-acquisition time comes from :mod:`btfcore.time_model`.
+acquisition time comes from :mod:`btfcore.acquisition.time_model`.
 
 References
 ----------
@@ -50,8 +50,8 @@ from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
-from .hadamard import multiplexing_patterns
-from .simulate.devices import Device
+from btfcore.acquisition.hadamard import multiplexing_patterns
+from btfcore.dome import Device
 
 __all__ = [
     "PLAN_SCHEMA",
@@ -340,7 +340,7 @@ class CapturePlan:
         -------
         patterns : (n_shots_t, n_leds) ndarray of uint8
             Rows in plan order: the ``illumination`` matrix a capture store
-            holds and :func:`btfcore.demultiplex.demultiplex` inverts.
+            holds and :func:`btfcore.capture.demultiplex.demultiplex` inverts.
         """
         rows = [s for s in self.shots if s.turntable == turntable and (group is None or s.group == group)]
         out = np.zeros((len(rows), self.n_leds), dtype=np.uint8)
@@ -563,7 +563,7 @@ def multiplexed_plan(device: Device, exposure: ExposureModel | None = None, *,
     plan : CapturePlan
         ``n * n_turn`` shots with ``n = smallest_s_matrix_order(n_leds)``;
         the shots at one position are the rows of
-        :func:`btfcore.hadamard.multiplexing_patterns`, in order (group
+        :func:`btfcore.acquisition.hadamard.multiplexing_patterns`, in order (group
         ``"S<n>"``).
 
     Notes

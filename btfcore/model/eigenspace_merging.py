@@ -33,7 +33,7 @@ from typing import Any, Union
 import numpy as np
 from scipy import linalg
 
-from ._lowrank import RANK_RTOL, TruncatedSVD, check_finite, check_int, check_k, check_rank, fix_signs
+from btfcore.model._lowrank import RANK_RTOL, TruncatedSVD, check_finite, check_int, check_k, check_rank, fix_signs
 
 __all__ = ["MergeTree", "Model", "merge_eigenspaces", "merge_tree"]
 
@@ -93,7 +93,7 @@ def merge_eigenspaces(models: Sequence[Model], k: int, *, rank_rtol: float = RAN
     ----------
     models : sequence of TruncatedSVD or (U, sigma[, rows_id]) tuples
         ``U_i`` of shape ``(n_lv, k_i)`` (orthonormal columns, as from
-        :func:`btfcore.truncated_svd.truncated_svd`; the ALS bases of paper 4
+        :func:`btfcore.model.truncated_svd.truncated_svd`; the ALS bases of paper 4
         need only normalised columns) and ``sigma_i`` of shape ``(k_i,)``.
         All must have the same ``n_lv`` and, where any has a ``rows_id``,
         the same ``rows_id``.

@@ -1,7 +1,7 @@
 """Shared pieces of the low-rank modules: the result type, block streaming and validation.
 
-Used by :mod:`btfcore.empca`, :mod:`btfcore.truncated_svd` and
-:mod:`btfcore.eigenspace_merging`. A BTF matrix ``B`` is ``(n_lv, n_tx)``
+Used by :mod:`btfcore.model.empca`, :mod:`btfcore.model.truncated_svd` and
+:mod:`btfcore.model.eigenspace_merging`. A BTF matrix ``B`` is ``(n_lv, n_tx)``
 (DESIGN §2) and reaches these modules as a *block source*: a callable that
 returns a fresh iterator over column blocks ``B[:, cols_j]`` of shape
 ``(n_lv, m_j)`` on every call, so that iterative methods can make several

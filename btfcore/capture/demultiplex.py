@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .hadamard import is_s_matrix_order
+from btfcore.acquisition.hadamard import is_s_matrix_order
 
 __all__ = [
     "DEMULTIPLEX_METHODS",
@@ -91,7 +91,7 @@ def s_matrix_inverse(S: np.ndarray) -> np.ndarray:
     ----------
     S : (n, n) array_like
         Binary S-matrix of a valid order ``n`` (prime, ``n % 4 == 3``), e.g.
-        :func:`btfcore.hadamard.s_matrix` or a row/column permutation of it.
+        :func:`btfcore.acquisition.hadamard.s_matrix` or a row/column permutation of it.
 
     Returns
     -------
@@ -136,7 +136,7 @@ def demultiplex_operator(patterns: np.ndarray, *, method: str = "lstsq") -> np.n
     ----------
     patterns : (n_illum, n_leds) array_like
         Binary illumination patterns, row ``i`` = pattern ``i``, column
-        ``j`` = LED ``j`` (e.g. :func:`btfcore.hadamard.multiplexing_patterns`).
+        ``j`` = LED ``j`` (e.g. :func:`btfcore.acquisition.hadamard.multiplexing_patterns`).
     method : {'lstsq', 'pinv'}
         ``'lstsq'`` uses the closed form when ``patterns`` are single-LED
         (a permutation matrix, whose inverse is its transpose) or (the
@@ -190,7 +190,7 @@ def demultiplex_operator(patterns: np.ndarray, *, method: str = "lstsq") -> np.n
         raise ValueError(
             f"patterns are rank-deficient: rank {rank} < {k} LEDs (smallest singular value "
             f"{s[-1]:.3g}); the LEDs cannot be separated, use e.g. an S-matrix "
-            f"(btfcore.hadamard.multiplexing_patterns)"
+            f"(btfcore.acquisition.hadamard.multiplexing_patterns)"
         )
     return (Vt.T / s) @ U.T                                       # eq. P = V S^-1 U^T = M^+
 

@@ -41,7 +41,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import Delaunay, QhullError, cKDTree
 
-from .simulate.devices import UBO_DOME1_RINGS, ring_directions, spherical_to_cartesian
+from btfcore.dome import UBO_DOME1_RINGS, ring_directions, spherical_to_cartesian
 
 __all__ = [
     "DIRECTION_TOL",
@@ -131,7 +131,7 @@ def ubo2014_directions() -> np.ndarray:
         Unit vectors, ring by ring: ``theta`` = 0, 11, 23.5, 30, 37.5, 45,
         52.5, 60, 67.5, 75 deg with 1, 6, 12, 12, 12, 18, 18, 24, 24, 24
         directions and azimuth offsets 0, 15, 0, 15, 0, 0, 7.5, 0, 7.5, 0 deg
-        (the fully parallel dome, :data:`btfcore.simulate.devices.UBO_DOME1_RINGS`).
+        (the fully parallel dome, :data:`btfcore.dome.UBO_DOME1_RINGS`).
         Used for both the light and the view directions (151 x 151 = 22,801
         pairs; see :func:`lv_product`).
     """
@@ -152,7 +152,7 @@ def lv_product(light_dirs: np.ndarray, view_dirs: np.ndarray) -> tuple[np.ndarra
     -------
     light, view : (n_v * n_l, 3) ndarray of float64
         Row ``v * n_l + l`` is the pair (light ``l``, view ``v``): the light
-        index runs fastest, as in :meth:`btfcore.simulate.devices.Device.lv_directions`.
+        index runs fastest, as in :meth:`btfcore.dome.Device.lv_directions`.
     """
     L = _as_dirs(light_dirs, "light_dirs")
     V = _as_dirs(view_dirs, "view_dirs")

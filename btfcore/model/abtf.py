@@ -33,7 +33,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
-from .colour import _as_float
+from btfcore.model.colour import _as_float
 
 __all__ = ["blend_patches", "patch_grid", "patch_matrix", "patch_rows"]
 

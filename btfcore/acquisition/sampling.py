@@ -46,7 +46,7 @@ from typing import Any, Callable
 import numpy as np
 from scipy import linalg
 
-from .resample import DIRECTION_TOL, _as_dirs, parabolic_map, unique_directions
+from btfcore.capture.resample import DIRECTION_TOL, _as_dirs, parabolic_map, unique_directions
 
 __all__ = [
     "SAMPLING_METHODS",
@@ -166,7 +166,7 @@ def _check_patch(patch: Any, n_rows: int) -> int:
     p = _check_int(patch, "patch", 1)
     if n_rows % (p * p):
         raise ValueError(
-            f"patch={p}: a patch basis has p**2 * n_lv rows (btfcore.abtf.patch_matrix), but U has {n_rows} "
+            f"patch={p}: a patch basis has p**2 * n_lv rows (btfcore.model.abtf.patch_matrix), but U has {n_rows} "
             f"rows, not a multiple of {p * p}; pass the patch size the basis was fitted with"
         )
     return p
@@ -303,7 +303,7 @@ def selection_condition(U: np.ndarray, rows: np.ndarray, *, patch: int | None = 
     ----------
     U : (n_lv, k) or (p * p * n_lv, k) array_like
         Basis; for ``patch=p`` an ABTF basis with rows ordered as
-        :func:`btfcore.abtf.patch_matrix` (row ``t * n_lv + s`` is pair ``s``
+        :func:`btfcore.model.abtf.patch_matrix` (row ``t * n_lv + s`` is pair ``s``
         of the patch's texel ``t``).
     rows : (n_s,) array_like of int
         Selected light/view rows (``M``'s ones), in ``range(n_lv)``.
@@ -323,7 +323,7 @@ def selection_condition(U: np.ndarray, rows: np.ndarray, *, patch: int | None = 
     .. math:: \\kappa(M U) = \\sigma_{max}(M U) / \\sigma_{min}(M U)
 
     Paper 1, §3.4 writes :math:`\\kappa(\\mathbf{1}_{p^2} \\otimes \\mathbf{M}\\mathbf{U})`;
-    :math:`\\mathbf{1}` is the identity (see :func:`btfcore.abtf.patch_matrix`).
+    :math:`\\mathbf{1}` is the identity (see :func:`btfcore.model.abtf.patch_matrix`).
     """
     A = _check_basis(U)
     p = _check_patch(patch, A.shape[0])
@@ -362,7 +362,7 @@ def random_swap(
     Parameters
     ----------
     U : (n_lv, k) or (p * p * n_lv, k) array_like
-        Basis (for ``patch=p`` an ABTF basis, rows as :func:`btfcore.abtf.patch_matrix`).
+        Basis (for ``patch=p`` an ABTF basis, rows as :func:`btfcore.model.abtf.patch_matrix`).
     n_s : int
         Light/view rows to select, or groups with ``groups``.
     groups : (n_lv,) array_like of int, optional
@@ -827,7 +827,7 @@ def greedy(
     Parameters
     ----------
     U : (n_lv, k) or (p * p * n_lv, k) array_like
-        Basis (for ``patch=p`` an ABTF basis, rows as :func:`btfcore.abtf.patch_matrix`).
+        Basis (for ``patch=p`` an ABTF basis, rows as :func:`btfcore.model.abtf.patch_matrix`).
     n_s : int
         Light/view rows to select, or groups with ``groups``.
     groups : (n_lv,) array_like of int, optional
@@ -951,7 +951,7 @@ def parabolic_map_grid(n: int = 7) -> np.ndarray:
 
     Notes
     -----
-    Inverse of :func:`btfcore.resample.parabolic_map`:
+    Inverse of :func:`btfcore.capture.resample.parabolic_map`:
 
     .. math:: d = \\frac{(2x, 2y, 1 - x^2 - y^2)}{1 + x^2 + y^2}
     """
@@ -972,7 +972,7 @@ def parabolic_map_sampling(light_dirs: np.ndarray, view_dirs: np.ndarray, n: int
     ----------
     light_dirs, view_dirs : (n_lv, 3) array_like
         Light and view direction of every light/view row (e.g. from
-        :func:`btfcore.resample.lv_product`), upper hemisphere.
+        :func:`btfcore.capture.resample.lv_product`), upper hemisphere.
     n : int
         Grid size (paper 1: 7).
 
@@ -998,7 +998,7 @@ def parabolic_map_sampling(light_dirs: np.ndarray, view_dirs: np.ndarray, n: int
     snapped to the closest distinct light (and, separately, view) direction
     by angle on the sphere (Euclidean distance of unit vectors); grid points
     that snap to the same direction give it once. Directions within
-    :data:`btfcore.resample.DIRECTION_TOL` count as one. The same views are
+    :data:`btfcore.capture.resample.DIRECTION_TOL` count as one. The same views are
     used for every light, so a camera dome keeps its parallelism (thesis
     line 264: "one and the same subset of the available cameras is used
     throughout").
@@ -1027,10 +1027,10 @@ def multiplexed_basis(S: np.ndarray, U: np.ndarray, sigma: np.ndarray | None = N
     ----------
     S : (n_p, n_l) array_like
         Illumination patterns (rows) over the lights (columns), e.g.
-        :func:`btfcore.hadamard.multiplexing_patterns`; any real weights.
+        :func:`btfcore.acquisition.hadamard.multiplexing_patterns`; any real weights.
     U : (n_v * n_l, k) array_like
         Basis whose rows are light/view pairs with the light index fastest,
-        row ``v * n_l + l`` (:func:`btfcore.resample.lv_product`; ``v`` runs
+        row ``v * n_l + l`` (:func:`btfcore.capture.resample.lv_product`; ``v`` runs
         over all (turntable, camera) views).
     sigma : (k,) array_like, optional
         Singular values :math:`\\Sigma` stored with the basis (paper 4, eq. 9);
@@ -1098,7 +1098,7 @@ def multiplexed_condition(S: np.ndarray, M_rows: np.ndarray, U: np.ndarray,
     ``M`` multiplexes lights only (a view is a camera, the light pattern
     changes), so it is block diagonal, one block of the pattern matrix per
     view: :math:`\\mathbf{M} = I_{n_v} \\otimes S` here, with this
-    function's ``S`` the patterns (the S-matrix of :mod:`btfcore.hadamard`),
+    function's ``S`` the patterns (the S-matrix of :mod:`btfcore.acquisition.hadamard`),
     and the thesis' selector ``S`` is ``M_rows``. It selects *multiplexed*
     rows (view, pattern): with 199 Hadamard patterns for 198 LEDs, ``M`` has
     more rows than ``n_lv``, so ``M_rows`` ranges over ``n_v * n_p``.

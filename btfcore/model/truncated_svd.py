@@ -12,7 +12,7 @@ read ``B`` as column blocks, never whole, and accumulate in float64:
   vectors (default ``max(10, k // 2)``) and ``n_iter`` power iterations
   (default 3), QR re-orthonormalised every pass
   (DESIGN §5: plain power iterations lose accuracy in float32).
-* ``'empca'``: :func:`btfcore.empca.empca`, iterated to a tolerance.
+* ``'empca'``: :func:`btfcore.model.empca.empca`, iterated to a tolerance.
 
 ``'auto'`` picks ``'gram'`` when ``G`` fits ``memory_bytes`` and its pass costs
 no more arithmetic than the randomized passes, else ``'randomized'``
@@ -32,9 +32,9 @@ from __future__ import annotations
 import numpy as np
 from scipy import linalg
 
-from ._lowrank import RANK_RTOL, Blocks, TruncatedSVD, as_block_source, check_int, check_k, check_rank, \
+from btfcore.model._lowrank import RANK_RTOL, Blocks, TruncatedSVD, as_block_source, check_int, check_k, check_rank, \
     fix_signs, for_each_block
-from .empca import block_power_iteration, check_iteration_args, empca
+from btfcore.model.empca import block_power_iteration, check_iteration_args, empca
 
 __all__ = ["METHODS", "TruncatedSVD", "choose_method", "column_blocks", "default_oversample", "truncated_svd"]
 
@@ -125,7 +125,7 @@ def truncated_svd(
     n_iter : int
         Power iterations ``q`` of 'randomized': ``q + 2`` passes over the data.
     tol, max_iter, criterion :
-        Convergence of 'empca' (:func:`btfcore.empca.empca`).
+        Convergence of 'empca' (:func:`btfcore.model.empca.empca`).
 
     Returns
     -------
@@ -159,7 +159,7 @@ def truncated_svd(
     :math:`Y = B (B^T Q)` block by block and :math:`Q = \\mathrm{qr}(Y)`, and
     the last pass' :math:`Q^T Y = Q^T B B^T Q` gives U and sigma by
     Rayleigh-Ritz (Alg. 5.1's small SVD). This is
-    :func:`btfcore.empca.block_power_iteration` with a fixed pass count.
+    :func:`btfcore.model.empca.block_power_iteration` with a fixed pass count.
     """
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")

@@ -3,18 +3,18 @@
 The chain for one (turntable, camera) view, thesis §1.1.3:
 
 1. HDR merge of every illumination's exposure bracket in the Bayer domain
-   (:func:`btfcore.hdr.merge_linear`, dark frames interpolated to the bracket's
+   (:func:`btfcore.capture.hdr.merge_linear`, dark frames interpolated to the bracket's
    exposure times);
-2. demosaicing of the float HDR mosaic (:func:`btfcore.demosaic.demosaic`);
+2. demosaicing of the float HDR mosaic (:func:`btfcore.capture.demosaic.demosaic`);
 3. rectification of the sample region to the ``h x w`` texture by one sparse
-   operator per view (:func:`btfcore.rectify.rectification_matrix`);
+   operator per view (:func:`btfcore.capture.rectify.rectification_matrix`);
 4. demultiplexing of the illumination patterns to single LEDs
-   (:func:`btfcore.demultiplex.demultiplex`; the identity for single-LED
+   (:func:`btfcore.capture.demultiplex.demultiplex`; the identity for single-LED
    captures);
 5. radiometric correction, when a calibration is given: division by each
    LED's RGB gain measured on a white standard
-   (:func:`btfcore.radiometric.apply_led_calibration`) and the camera's
-   colour matrix (:func:`btfcore.radiometric.apply_colour_matrix`).
+   (:func:`btfcore.capture.radiometric.apply_led_calibration`) and the camera's
+   colour matrix (:func:`btfcore.capture.radiometric.apply_colour_matrix`).
 """
 
 from __future__ import annotations
@@ -25,11 +25,11 @@ import cv2
 import numpy as np
 from scipy import sparse
 
-from btfcore.demosaic import demosaic
-from btfcore.demultiplex import demultiplex_operator
-from btfcore.hdr import dark_per_exposure, merge_linear
-from btfcore.radiometric import apply_colour_matrix, apply_led_calibration
-from btfcore.rectify import apply_rectification, rectification_matrix, support_window
+from btfcore.capture.demosaic import demosaic
+from btfcore.capture.demultiplex import demultiplex_operator
+from btfcore.capture.hdr import dark_per_exposure, merge_linear
+from btfcore.capture.radiometric import apply_colour_matrix, apply_led_calibration
+from btfcore.capture.rectify import apply_rectification, rectification_matrix, support_window
 
 #: Radius of the demosaicing filters (Malvar 2004: 5 x 5): pixels read around the rectification's window.
 DEMOSAIC_RADIUS = 2
@@ -60,7 +60,7 @@ def view_window(homography: np.ndarray, frame_shape: tuple[int, int], texture_sh
     -------
     row_window, col_window : slice
         The pixels the rectification reads, plus the demosaicing filter's
-        radius, starting on the Bayer period (:func:`btfcore.rectify.support_window`).
+        radius, starting on the Bayer period (:func:`btfcore.capture.rectify.support_window`).
     A : (h * w, n_rows * n_cols) scipy.sparse.csr_matrix
         The rectification operator on that window.
     """
@@ -94,7 +94,7 @@ def process_view(frames: np.ndarray, exposure_time: np.ndarray, patterns: np.nda
         The camera's dark frames (DN, black level included) at ``dark_exposure_time``.
     led_gain : (n_leds, 3) ndarray, optional
         Each LED's RGB gain from a white standard
-        (:func:`btfcore.radiometric.led_calibration`, DN/s per unit
+        (:func:`btfcore.capture.radiometric.led_calibration`, DN/s per unit
         irradiance-weighted reflectance); the textures are divided by it.
     colour_matrix : (3, 3) or (3, 4) ndarray, optional
         Camera RGB -> target RGB, applied after the LED gains.
@@ -115,7 +115,7 @@ def process_view(frames: np.ndarray, exposure_time: np.ndarray, patterns: np.nda
         of albedo ``a`` reads ``a cos(theta_i) / pi``), the ground truth's unit.
     valid_fraction : (n_illum,) ndarray of float64
         Fraction of the raw pixels read for the texture (the window of
-        :func:`btfcore.rectify.support_window`) with at least one usable
+        :func:`btfcore.capture.rectify.support_window`) with at least one usable
         exposure, per pattern.
     """
     n_illum, n_exp = frames.shape[:2]

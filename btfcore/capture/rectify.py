@@ -2,7 +2,7 @@
 
 Each view ``(t, c)`` sees the sample plane through a homography ``H``
 (sample-plane metres ``(x, y, 1)`` -> image pixel ``(col, row, 1)``,
-:meth:`btfcore.simulate.devices.Device.homography`). Rectification samples the
+:meth:`btfcore.dome.Device.homography`). Rectification samples the
 image on the texel grid of the sample square (DESIGN stage 5; thesis 1.1.3):
 texel ``(i, j)`` of an ``(h, w)`` texture is centred at
 ``x = ((j + 0.5) / w - 0.5) s``, ``y = (0.5 - (i + 0.5) / h) s`` (row 0 is
@@ -574,7 +574,7 @@ def support_window(A: sparse.spmatrix, image_shape: tuple[int, int], *, margin: 
     -----
     A camera frame is larger than the sample's footprint (on a grazing view
     by several times): processing only the window is what makes the per-view
-    chain of :mod:`btfcore.ingest` cheap, with results equal to processing
+    chain of :mod:`btfcore.capture.view_chain` cheap, with results equal to processing
     the whole frame.
     """
     rows, cols = (int(v) for v in image_shape)
@@ -660,7 +660,7 @@ def rectify(image: np.ndarray, H: np.ndarray, texture_shape: tuple[int, int], sa
         Linear radiance of the view (float; HDR values > 1 allowed).
     H : (3, 3) ndarray
         Sample-plane metres ``(x, y, 1)`` -> image pixel ``(col, row, 1)``
-        (:meth:`btfcore.simulate.devices.Device.homography`).
+        (:meth:`btfcore.dome.Device.homography`).
     texture_shape : (2,) tuple of int
         ``(h, w)`` of the texture.
     sample_size_m : float

@@ -1,7 +1,7 @@
 """Acquisition-time model of a camera dome, fitted to the thesis' published times.
 
 The model predicts how long a device takes to execute a
-:class:`~btfcore.plan.CapturePlan`, with a breakdown into shutter time,
+:class:`~btfcore.acquisition.plan.CapturePlan`, with a breakdown into shutter time,
 per-exposure and per-shot overheads, LED switching and turntable moves. Its
 two overhead parameters are fitted by least squares on (at most) two published
 acquisition times of the thesis' DOME II and then predict the others
@@ -53,7 +53,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from .plan import (
+from btfcore.acquisition.plan import (
     CapturePlan,
     ExposureModel,
     bootstrapping_plan,
@@ -62,7 +62,7 @@ from .plan import (
     sparse_multiplexed_plan,
     sparse_plan,
 )
-from .simulate.devices import Device, get_device
+from btfcore.dome import Device, get_device
 
 __all__ = [
     "DEFAULT_FIT_ON",

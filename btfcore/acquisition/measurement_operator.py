@@ -1,6 +1,6 @@
 """Solve operators for a general measurement matrix ``G`` (a plan capture's ``G B``).
 
-:func:`btfcore.reconstruct.solve_operator` describes a measurement by a row
+:func:`btfcore.acquisition.reconstruct.solve_operator` describes a measurement by a row
 selection and one pattern matrix shared by every view. A capture executed from
 an acquisition plan has a measurement matrix ``G`` ``(n_meas, n_lv)`` of any
 shape: per turntable position its own patterns (bootstrapping quadrants,
@@ -34,7 +34,7 @@ from numpy.typing import DTypeLike
 from scipy import sparse
 from scipy.sparse.csgraph import connected_components
 
-from .reconstruct import (
+from btfcore.acquisition.reconstruct import (
     RECONSTRUCTION_METHODS,
     THRESHOLD_DECILE,
     SolveOperator,
@@ -193,17 +193,17 @@ def measurement_solve_operator(
         it, ``'direct'`` defaults to 0).
     variance : (n_lv,) array_like, optional
         ``'thresholded'``: per-texture variance of the demultiplexed BTF
-        :math:`G^\\dagger y` (:func:`btfcore.reconstruct.texture_variance`).
+        :math:`G^\\dagger y` (:func:`btfcore.acquisition.reconstruct.texture_variance`).
     decile : float
         ``'thresholded'``: rows above this decile are left out.
     fused : bool, optional
-        As :func:`btfcore.reconstruct.solve_operator`.
+        As :func:`btfcore.acquisition.reconstruct.solve_operator`.
     dtype : float32 or float64
 
     Returns
     -------
     operator : SolveOperator
-        :func:`btfcore.reconstruct.apply` maps measured ``(n_meas, m)`` to ``(n_lv, m)``.
+        :func:`btfcore.acquisition.reconstruct.apply` maps measured ``(n_meas, m)`` to ``(n_lv, m)``.
 
     Raises
     ------
@@ -216,7 +216,7 @@ def measurement_solve_operator(
     Notes
     -----
     With :math:`A = G U`, ``'pinv'``, ``'tikhonov'`` and ``'direct'`` are the
-    regularised solve of :func:`btfcore.reconstruct.solve_operator`
+    regularised solve of :func:`btfcore.acquisition.reconstruct.solve_operator`
     (:math:`C = \\Sigma W \\operatorname{diag}(s/(s^2+\\lambda^2)) Q^T y` with
     :math:`A\\Sigma = Q S W^T`; :math:`A^\\dagger` for :math:`\\lambda = 0`).
     For ``G = S (I \\otimes M)`` they equal ``solve_operator(U, sigma,

@@ -15,7 +15,7 @@ one pass over the data per iteration, holding only ``(n_lv, l)`` and
 ``(l, l)`` accumulators. Since :math:`\\sum_j B_j X_j^T = B B^T C (C^T C)^{-1}`,
 each iteration maps span(C) to span(B B^T C): EM-PCA is block power
 iteration on the Gram matrix, and :func:`block_power_iteration` implements it
-once for this module and the randomized SVD of :mod:`btfcore.truncated_svd`.
+once for this module and the randomized SVD of :mod:`btfcore.model.truncated_svd`.
 
 References
 ----------
@@ -33,8 +33,8 @@ import warnings
 
 import numpy as np
 
-from . import BtfWarning
-from ._lowrank import RANK_RTOL, Blocks, BlockSource, TruncatedSVD, as_block_source, check_int, check_k, \
+from btfcore import BtfWarning
+from btfcore.model._lowrank import RANK_RTOL, Blocks, BlockSource, TruncatedSVD, as_block_source, check_int, check_k, \
     check_rank, fix_signs, for_each_block, largest_angle, ritz
 
 __all__ = ["CRITERIA", "block_power_iteration", "check_iteration_args", "empca"]

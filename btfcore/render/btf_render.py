@@ -13,7 +13,7 @@ a plane seen by an orthographic or pinhole camera:
    an environment map reduced to directional lights by :func:`env_lights`);
 3. the BTF value for that light/view pair at that texel: barycentric
    interpolation over the measured views and, per view, over the lights
-   measured with it -- the weights of :func:`btfcore.resample.resample_weights`
+   measured with it -- the weights of :func:`btfcore.capture.resample.resample_weights`
    (thesis §1.1.2) -- and a nearest or bilinear texel look-up with
    wrap-around (:class:`BTFLookup`);
 4. outgoing radiance :math:`L_o = \\sum_k B(l_k, v, x) E_k` (:func:`render_btf`).
@@ -45,8 +45,8 @@ from typing import Literal
 import numpy as np
 import scipy.sparse as sp
 
-from .resample import DIRECTION_TOL, barycentric_weights, unique_directions
-from .tonemap import tonemap
+from btfcore.capture.resample import DIRECTION_TOL, barycentric_weights, unique_directions
+from btfcore.render.tonemap import tonemap
 
 __all__ = [
     "SHAPES",
@@ -449,7 +449,7 @@ def env_lights(env: np.ndarray, n_theta: int = 8, n_phi: int = 16, rotation_deg:
 
 
 def _merge_directions(dirs: np.ndarray, name: str) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`btfcore.resample.unique_directions` of many repeated directions, exact repeats merged first."""
+    """:func:`btfcore.capture.resample.unique_directions` of many repeated directions, exact repeats merged first."""
     norm = np.linalg.norm(dirs, axis=1)
     bad = ~np.isfinite(norm) | (norm < 1e-12) | ~(dirs[:, 2] >= -1e-9 * norm)
     if bad.any():
@@ -481,7 +481,7 @@ class BTFLookup:
     Notes
     -----
     The angular weights are those of
-    :func:`btfcore.resample.resample_weights`: the distinct views are
+    :func:`btfcore.capture.resample.resample_weights`: the distinct views are
     triangulated in the parabolic map, giving view weights :math:`\\mu_j(v)`;
     the lights measured with each view are triangulated on their own, giving
     :math:`\\lambda^{(j)}_i(l)`; the pair gets :math:`\\mu_j(v)\\lambda^{(j)}_i(l)`,
@@ -594,7 +594,7 @@ class BTFLookup:
         -------
         W : (n, n_lv) scipy.sparse.csr_matrix of float64
             Non-negative, rows sum to 1, at most 9 non-zeros per row; the
-            same as :func:`btfcore.resample.resample_weights` of this BTF's
+            same as :func:`btfcore.capture.resample.resample_weights` of this BTF's
             directions and the queries. At a measured pair it is that row.
         """
         light = np.asarray(light, dtype=np.float64)
@@ -764,7 +764,7 @@ def render_btf(
 
 def to_srgb8(image: np.ndarray, mask: np.ndarray | None = None, white: float | None = None,
              background: tuple[int, int, int] = (0, 0, 0)) -> np.ndarray:
-    """Tone-map a linear rendering to 8-bit sRGB (:func:`btfcore.tonemap.tonemap`).
+    """Tone-map a linear rendering to 8-bit sRGB (:func:`btfcore.render.tonemap.tonemap`).
 
     Parameters
     ----------

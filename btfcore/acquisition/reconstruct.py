@@ -8,7 +8,7 @@ measurement operator ``G`` acts from the left and is built from two parts:
   :math:`\\mathbf S`, :math:`\\mathbf S \\mathbf S^T = \\mathbf I`): indices of
   the measured rows, in the order the measured chunk holds them;
 * **illumination patterns** ``patterns`` (the ``(n_p, n_lights)`` binary
-  pattern matrix of :mod:`btfcore.demultiplex`, paper 4's :math:`\\mathbf M`
+  pattern matrix of :mod:`btfcore.capture.demultiplex`, paper 4's :math:`\\mathbf M`
   restricted to one view): applied to every view, i.e.
   :math:`\\mathbf I_{n_{views}} \\otimes \\mathrm{patterns}` on ``B``'s rows,
   which are view-major with the light fastest (``lv_order``).
@@ -70,10 +70,10 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import DTypeLike
 
-from ._lowrank import check_finite
-from .abtf import _patch_size, patch_grid, patch_matrix
-from .colour import _as_float
-from .demultiplex import _as_patterns, demultiplex_operator
+from btfcore.model._lowrank import check_finite
+from btfcore.model.abtf import _patch_size, patch_grid, patch_matrix
+from btfcore.model.colour import _as_float
+from btfcore.capture.demultiplex import _as_patterns, demultiplex_operator
 
 __all__ = [
     "LAMBDA_ALS",
@@ -411,7 +411,7 @@ def solve_operator(
       measurement is fitted as is, never demultiplexed.
     * ``'projection'`` (VMV §4.1): :math:`R = U^T` (times
       :math:`I \\otimes P` with :math:`P` from
-      :func:`btfcore.demultiplex.demultiplex_operator` when patterns are
+      :func:`btfcore.capture.demultiplex.demultiplex_operator` when patterns are
       given).
     * ``'thresholded'`` (VMV §4.1): :math:`R = \\tilde U^\\dagger`, scattered
       to the kept rows (zero columns at the dropped ones); rows are dropped
@@ -734,7 +734,7 @@ def abtf_operator(
     Parameters
     ----------
     U : (p * p * n_lv, k) array_like
-        Patch basis in the row order of :func:`btfcore.abtf.patch_matrix`
+        Patch basis in the row order of :func:`btfcore.model.abtf.patch_matrix`
         (``p²`` blocks of ``n_lv`` rows, one per texel of the patch).
     rows : (n_s,) array_like of int
         Measured light/view pairs (into ``n_lv``), the same for every texel.
@@ -762,7 +762,7 @@ def abtf_operator(
     Notes
     -----
     The patch measurement is :math:`S_{patch} = I_{p^2} \\otimes S` (thesis
-    line 260; see :func:`btfcore.abtf.patch_matrix` on why the thesis'
+    line 260; see :func:`btfcore.model.abtf.patch_matrix` on why the thesis'
     :math:`\\mathbf 1_{p^2}` is the identity): it selects rows
     ``d * n_lv + rows[j]`` of ``U`` for texel ``d`` of the patch, in the
     order ``(d, j)`` of ``patch_matrix`` applied to the measured texture, and
@@ -775,7 +775,7 @@ def abtf_operator(
     u = _as_basis(U)
     if u.shape[0] % (p * p):
         raise ValueError(f"U has {u.shape[0]} rows, not a multiple of p² = {p * p}: pass a patch basis "
-                         f"(rows of btfcore.abtf.patch_matrix) or the right p")
+                         f"(rows of btfcore.model.abtf.patch_matrix) or the right p")
     n_lv, k = u.shape[0] // (p * p), u.shape[1]
     lam_v = _as_lam(lam, method)
     s = _as_sigma(sigma, k) if lam_v > 0 else None
@@ -858,9 +858,9 @@ def reconstruct_abtf(
     Notes
     -----
     Paper 1, §4.1.2: all overlapping p x p patches of the measurement
-    (:func:`btfcore.abtf.patch_matrix` with ``overlap=True``) are solved for
+    (:func:`btfcore.model.abtf.patch_matrix` with ``overlap=True``) are solved for
     coefficients :math:`C = R P`, and texels are blended "all texels weighted
-    equally" as :func:`btfcore.abtf.blend_patches` does. Instead of forming
+    equally" as :func:`btfcore.model.abtf.blend_patches` does. Instead of forming
     :math:`U C` (``p² n_lv`` rows per patch) the blend accumulates the
     ``p²`` blocks :math:`U_d C` one at a time, shifted to their texels, and
     divides by the number of covering patches (same values as

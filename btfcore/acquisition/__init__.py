@@ -1,0 +1,1 @@
+"""Acquisition: sparse sampling, multiplexed illumination, plans, time and noise models, reconstruction from few measurements (papers 2-4)."""

@@ -1,0 +1,1 @@
+"""Rendering of BTFs and tone mapping for display."""
