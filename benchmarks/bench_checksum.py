@@ -131,7 +131,7 @@ def bench_ingest(args, scratch: Path) -> dict:
     from flows.runtime import runtime
     from tasks.ingest import ingest_capture
     from tasks.simulate import SimulationConfig, simulate_database
-    from tasks.store import open_capture_store
+    from tasks.stores import open_capture_store
 
     config = SimulationConfig(device="bonn-dome2", n_materials=1, seed=0, classes=("leather",), n_turntable=1)
     runs: dict[bool, list[float]] = {True: [], False: []}

@@ -53,7 +53,7 @@ def opencv_loop(capture_path: str, n_views: int, out_dir: Path, window: bool = F
     only the part of each frame the texture reads, as btf ingest does). Each view's textures
     are saved to ``out_dir`` as one float32 .npy file: the same bytes the ingest writes."""
     from btfcore.capture.rectify import rectification_matrix, support_window, texture_homography
-    from tasks.store import open_capture_store
+    from tasks.stores import open_capture_store
 
     store = open_capture_store(capture_path)
     meta = store.meta
@@ -100,7 +100,7 @@ def main() -> int:
     from flows.runtime import runtime
     from tasks.ingest import ingest_capture
     from tasks.simulate import SimulationConfig, simulate_database
-    from tasks.store import open_capture_store
+    from tasks.stores import open_capture_store
 
     scratch = Path(tempfile.mkdtemp(prefix="bench-ingest-"))
     ingest_s, loop, window = [], [], []

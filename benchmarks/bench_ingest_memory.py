@@ -35,7 +35,7 @@ def main() -> int:
     from flows.runtime import runtime
     from tasks.ingest import ingest_capture
     from tasks.simulate import SimulationConfig, simulate_database
-    from tasks.store import open_capture_store
+    from tasks.stores import open_capture_store
 
     scratch = Path(tempfile.mkdtemp(prefix="bench-memory-"))
     try:

@@ -40,7 +40,7 @@ def reconstruct_evaluation(measurement: str, out: str) -> dict[str, Any]:
     import zarr
 
     from tasks.ingest import btf_error_against_truth
-    from tasks.store import open_capture_store
+    from tasks.stores import open_capture_store
 
     capture = zarr.open_group(measurement, mode="r", zarr_format=3).attrs.get("source")
     try:

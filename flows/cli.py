@@ -353,7 +353,7 @@ def _evaluation_config(args: argparse.Namespace):
 def _evaluate(args: argparse.Namespace) -> int:
     from tasks.ingest import btf_error_against_truth
     from tasks.report import write_json
-    from tasks.store import open_capture_store
+    from tasks.stores import open_capture_store
 
     if not args.truth or not args.btf:
         raise ValueError("give --truth SIM and --btf BTF")
@@ -388,7 +388,7 @@ def _schedule(args: argparse.Namespace) -> int:
 
 def _validate(args: argparse.Namespace) -> int:
     from tasks.integrity import CHECKSUM_NOTE, open_any_store, store_kind, unchecked_arrays, verify_store
-    from tasks.store import validate_capture_store
+    from tasks.stores import validate_capture_store
 
     opened_only = ("btf-texture", "btf-measurement", "btf-model")   # no schema check beyond opening (yet)
     failed = 0
@@ -497,7 +497,7 @@ def _preflight(args: argparse.Namespace) -> dict:
                      load_calibration(args.white, args.white_albedo, args.colour_matrix))
     elif args.command == "import-raw":
         from tasks.ingest_raw import plan_raw_import, raw_import_metadata
-        from tasks.store import check_capture_target
+        from tasks.stores import check_capture_target
         prepared["device"] = _calibration(args)
         prepared["plan"] = plan_raw_import(args.folder, args.manifest)   # every problem listed at once
         refuse_inputs_as_outputs(outputs, {f"raw file {p.name}": p for p in prepared["plan"].files.values()})

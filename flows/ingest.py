@@ -66,7 +66,7 @@ def commit_stage(out: str) -> str:
 @task(name="ingest-evaluation", cache_policy=NO_CACHE)
 def ingest_evaluation(capture: str, out: str) -> dict[str, Any]:
     from tasks.ingest import btf_error_against_truth
-    from tasks.store import open_capture_store
+    from tasks.stores import open_capture_store
 
     if not open_capture_store(capture).has_truth:
         return {}

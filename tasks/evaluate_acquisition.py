@@ -74,7 +74,7 @@ from tasks.model import (
     open_model_store,
 )
 from tasks.staging import begin_store, finish_store, store_attrs
-from tasks.store import to_json_attr
+from tasks.stores import to_json_attr
 
 #: The thesis' sparse pair counts (paper 4 §5.2: n_s of 2,376 (light, turntable) pairs, all 11 cameras).
 THESIS_N_S = (100, 200, 400)

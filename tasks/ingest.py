@@ -54,7 +54,7 @@ from tasks.integrity import create_array
 from tasks.radiometric import CALIBRATED_UNITS, Calibration
 from tasks.staging import begin_store, finish_store, staged_target, staging_path, store_attrs
 from tasks.staging import commit_staged as _commit_staged
-from tasks.store import CaptureStore, open_capture_store, to_json_attr
+from tasks.stores import CaptureStore, open_capture_store, to_json_attr
 
 SCHEMA_NAME = "btf-texture"
 SCHEMA_VERSION = "1.0"
@@ -95,7 +95,7 @@ def check_capture(capture_path: str | os.PathLike) -> CaptureStore:
 
     Raises
     ------
-    tasks.store.CaptureStoreError
+    tasks.stores.CaptureStoreError
         The store breaks its schema (every problem listed).
     ValueError
         Its illumination patterns cannot be demultiplexed into single LEDs.
@@ -128,7 +128,7 @@ def check_ingest(capture_path: str | os.PathLike, out_path: str | os.PathLike, *
 
     Raises
     ------
-    tasks.store.CaptureStoreError, ValueError
+    tasks.stores.CaptureStoreError, ValueError
         A capture that breaks its schema or cannot be demultiplexed; a calibration that does not fit it.
     FileExistsError
         ``out_path`` holds another output and not ``overwrite``.

@@ -29,7 +29,7 @@ from typing import Any, Callable
 import numpy as np
 
 from btfcore.dome import Device
-from tasks.store import CaptureMetadata, CaptureStore, create_capture_store
+from tasks.stores import CaptureMetadata, CaptureStore, create_capture_store
 
 MANIFEST_COLUMNS = ("file", "turntable", "camera", "illumination", "exposure")
 _INDEX_COLUMNS = MANIFEST_COLUMNS[1:]
@@ -335,7 +335,7 @@ def raw_import_metadata(plan: RawImportPlan, device: Device, provenance: dict[st
 
 def import_view(store_path: str, plan: RawImportPlan, t: int, c: int) -> tuple[int, int]:
     """Read one view's brackets from their files and write them (owning whole chunks)."""
-    from tasks.store import open_capture_store
+    from tasks.stores import open_capture_store
 
     store = open_capture_store(store_path, mode="r+", require_complete=False)
     _, _, n_illum, n_exp = plan.shape
@@ -352,7 +352,7 @@ def import_raw(plan: RawImportPlan, device: Device, out: str | os.PathLike, clie
     With a ``distributed.Client`` the views run on the cluster; without, here.
     A rerun resumes with the views not yet written.
     """
-    from tasks.store import open_capture_store
+    from tasks.stores import open_capture_store
 
     meta = raw_import_metadata(plan, device, provenance)
     store = create_capture_store(out, meta, overwrite=overwrite)

@@ -48,7 +48,7 @@ from btfcore.capture.view_chain import IngestSettings, lv_directions, process_vi
 from btfcore.acquisition.plan import CapturePlan
 from tasks.integrity import create_array
 from tasks.staging import begin_store, finish_store, staged_target, staging_path
-from tasks.store import CaptureStore, bracket_steps, open_capture_store, to_json_attr
+from tasks.stores import CaptureStore, bracket_steps, open_capture_store, to_json_attr
 
 __all__ = [
     "SCHEMA_NAME",

@@ -50,7 +50,7 @@ from btfcore.model.eigenspace_merging import merge_eigenspaces
 from btfcore.model.truncated_svd import truncated_svd
 from tasks.integrity import create_array
 from tasks.staging import begin_store, finish_store
-from tasks.store import to_json_attr
+from tasks.stores import to_json_attr
 
 SCHEMA_NAME = "btf-model"
 SCHEMA_VERSION = "1.0"

@@ -71,7 +71,7 @@ from btfcore.acquisition.reconstruct import (
 from tasks.integrity import create_array
 from tasks.staging import (begin_store, commit_staged, finish_interrupted_commit, finish_store, staging_path,
                            store_attrs)
-from tasks.store import to_json_attr
+from tasks.stores import to_json_attr
 
 __all__ = ["RECONSTRUCT_BASES", "ReconstructSettings", "build_operators", "check_inputs", "open_model",
            "reconstruct_band", "reconstruct_chunk", "reconstruct_store", "read_input"]

@@ -19,7 +19,7 @@ from btfcore.simulate.camera import homography_sample_mask
 from btfcore.dome import Device
 from btfcore.simulate.sensor import WELL_EXPOSED
 from btfcore.render.tonemap import srgb_encode, tonemap
-from tasks.store import CaptureStore, open_capture_store
+from tasks.stores import CaptureStore, open_capture_store
 
 #: Rows of the ground truth read for statistics (a subsample keeps reports cheap
 #: on bonn-dome2, whose truth is ~5 GB per material).

@@ -44,7 +44,7 @@ from tasks.ingest import SCHEMA_NAME, SCHEMA_VERSION
 from tasks.integrity import create_array
 from tasks.staging import (begin_store, commit_staged, finish_store, staged_target, staging_path, store_attrs,
                            trash_path)
-from tasks.store import to_json_attr
+from tasks.stores import to_json_attr
 
 #: The built-in target sampling.
 UBO2014 = "ubo2014"

@@ -29,7 +29,7 @@ from btfcore.dome import DEVICE_NAMES, Device, get_device
 from btfcore.simulate.materials import MATERIAL_CLASSES, MaterialMaps, make_material, white_standard
 from btfcore.simulate.render import downsample2, horizon_map, render_view
 from btfcore.simulate.sensor import choose_bracket, dark_current_map, dark_frames, expose
-from tasks.store import (
+from tasks.stores import (
     CaptureMetadata,
     CaptureStore,
     check_capture_target,

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from tasks.store import open_capture_store
+from tasks.stores import open_capture_store
 
 ROOT = Path(__file__).resolve().parents[2]
 

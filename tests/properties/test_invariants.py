@@ -13,7 +13,7 @@ from btfcore.acquisition.hadamard import is_s_matrix_order, s_matrix, smallest_s
 from btfcore.simulate.render import downsample2
 from btfcore.simulate.sensor import bayer_channel_index, mosaic
 from btfcore.render.tonemap import tonemap
-from tasks.store import to_json_attr
+from tasks.stores import to_json_attr
 
 VALID_ORDERS = [n for n in range(3, 200) if is_s_matrix_order(n)]
 

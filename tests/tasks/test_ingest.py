@@ -9,7 +9,7 @@ import zarr
 from btfcore.capture.view_chain import IngestSettings, process_view
 from tasks.ingest import btf_error_against_truth, ingest_capture
 from tasks.simulate import SimulationConfig, simulate_database
-from tasks.store import open_capture_store
+from tasks.stores import open_capture_store
 
 
 @pytest.fixture(scope="module")

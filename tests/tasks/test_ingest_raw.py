@@ -10,7 +10,7 @@ import pytest
 from btfcore.dome import get_device
 from tasks.ingest_raw import RawImportError, import_raw, plan_raw_import, probe_raw_file
 from tasks.shared_data import shared_file
-from tasks.store import open_capture_store
+from tasks.stores import open_capture_store
 
 @pytest.fixture()
 def dng_capture(tmp_path, write_dng):

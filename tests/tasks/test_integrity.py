@@ -17,7 +17,7 @@ import zarr
 from flows.cli import EXIT_BAD_INPUT, main
 from tasks import integrity
 from tasks.integrity import CHECKSUM_NOTE, CorruptChunkError, create_array, has_checksums, verify_store
-from tasks.store import CaptureStore, create_capture_store, open_capture_store, validate_capture_store
+from tasks.stores import CaptureStore, create_capture_store, open_capture_store, validate_capture_store
 
 ROOT = Path(__file__).resolve().parents[2]
 

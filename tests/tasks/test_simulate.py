@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from tasks.simulate import SimulationConfig, material_plan, simulate_database
-from tasks.store import open_capture_store
+from tasks.stores import open_capture_store
 
 
 def _arrays(path):

@@ -1,4 +1,4 @@
-"""Tests of the capture store (tasks/store.py) on real Zarr v3 stores on disk."""
+"""Tests of the capture store (tasks/stores/capture.py) on real Zarr v3 stores on disk."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import zarr
 
-from tasks.store import (
+from tasks.stores import (
     BAYER_PATTERNS,
     SCHEMA_NAME,
     SCHEMA_VERSION,
