@@ -62,6 +62,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -152,7 +153,27 @@ def parse_configs(text: str) -> list[tuple[int | None, int | None]]:
             for item in text.split(",") if item]
 
 
-def main() -> int:
+@dataclass(frozen=True)
+class _Problem:
+    """The synthetic matrix every contender factorises, and its optimal rank-k error."""
+
+    store: Path
+    U: np.ndarray
+    s: np.ndarray
+    n_lv: int
+    n_tx: int
+    k: int
+    optimal: float
+    seed: int
+
+    def excess(self, Uk: np.ndarray) -> float:
+        """Projection error of the basis ``Uk`` over the optimal one, minus 1 (4 significant digits)."""
+        err = projection_error(Uk, self.U, self.s)
+        return float(f"{err / self.optimal - 1:.3e}")
+
+
+def _parse_args() -> argparse.Namespace:
+    """The command line (see the module docstring's usage line)."""
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--configs", default="default,2:128,3:128,4:128,6:128",
                         help="our runs as n_iter:oversample or 'default' (truncated_svd's own: n_iter 3, "
@@ -171,8 +192,130 @@ def main() -> int:
     parser.add_argument("--skip-sklearn", action="store_true")
     parser.add_argument("--scratch", type=Path, default=None, help="folder of the store [default: a temporary one]")
     parser.add_argument("--keep", action="store_true", help="keep the store (reused by a later run with --scratch)")
-    args = parser.parse_args()
+    return parser.parse_args()
 
+
+def _ensure_store(store: Path, U: np.ndarray, make_V: Callable[[], np.ndarray], s: np.ndarray, h: int,
+                  spec: dict, result: dict) -> int:
+    """Write the synthetic store (``result['write_s']``) unless ``store`` holds one of the same ``spec``;
+    the columns of one texture band (one chunk's rows)."""
+    import zarr
+
+    existing = None
+    if store.exists():
+        existing = dict(zarr.open_group(str(store), mode="r", zarr_format=3).attrs).get("synthetic")
+    if existing == spec:
+        log(f"reusing {store}")
+    else:
+        log(f"writing {store} ({result['gb']} GB)")
+        V = make_V()
+        result["write_s"] = round(write_store(store, U, V, s, h, h, N_LEDS, spec), 1)
+        del V
+    return int(zarr.open_group(str(store), mode="r", zarr_format=3)["btf"].chunks[1]) * h * 3
+
+
+def _read_rates(store: Path, result: dict) -> float:
+    """Read rates into ``result``: the chunk files, then one streaming pass as our method reads them;
+    the seconds of that pass."""
+    result["file_read_gb_per_s"] = round(file_read_rate(store), 2)
+    zarr_rate, zarr_pass_s = zarr_read_rate(store)
+    result["zarr_pass_gb_per_s"], result["zarr_pass_s"] = round(zarr_rate, 2), round(zarr_pass_s, 2)
+    log(f"read rates: files {result['file_read_gb_per_s']} GB/s, zarr pass {zarr_rate:.2f} GB/s")
+    return zarr_pass_s
+
+
+def _run_ours(pb: _Problem, configs: list[tuple[int | None, int | None]], repeats: int,
+              zarr_pass_s: float) -> list[dict]:
+    """Our streaming randomized SVD, ``repeats`` runs of each config; one record a run."""
+    from btfcore.model.truncated_svd import truncated_svd
+    from tasks.model import blocks
+
+    n_lv, n_tx, k = pb.n_lv, pb.n_tx, pb.k
+    ours = []
+    for q, p in configs:
+        given = {} if q is None else {"n_iter": q, "oversample": p}
+        for rep in range(repeats):
+            log(f"ours: randomized {given or 'library defaults'} (run {rep + 1})")
+            start = time.perf_counter()
+            res = truncated_svd(blocks(str(pb.store), "als"), n_lv, k, "randomized", seed=pb.seed, **given)
+            seconds = time.perf_counter() - start
+            q, p = res.settings["n_iter"], res.settings["oversample"]
+            excess = pb.excess(res.U)
+            flops = (q + 2) * 4.0 * n_lv * n_tx * (k + p)
+            ours.append({"n_iter": q, "oversample": p, "library_default": not given, "passes": res.iterations,
+                         "s": round(seconds, 1),
+                         "excess_error": excess,
+                         "gflop": round(flops / 1e9), "gflop_per_s": round(flops / seconds / 1e9, 1),
+                         "read_share": round(res.iterations * zarr_pass_s / seconds, 3),
+                         "zarr_gb_per_s": round(res.iterations * n_lv * n_tx * 4 / 1e9 / seconds, 2)})
+            log(f"  -> {ours[-1]}")
+    return ours
+
+
+def _run_dask(pb: _Problem, peer_q: int, peer_p: int) -> dict:
+    """The dask peer, ``svd_compressed`` at its defaults and at the peer config (2 threads, BLAS 1 each)."""
+    import dask
+    import dask.array as da
+    from threadpoolctl import threadpool_limits
+
+    x = da.from_zarr(str(pb.store / "btf")).reshape(pb.n_lv, -1)
+    peers = []
+    for iterator, q, p in (("power", 0, 10), ("power", peer_q, peer_p), ("QR", peer_q, peer_p)):
+        log(f"dask svd_compressed iterator={iterator} n_power_iter={q} n_oversamples={p}")
+        with dask.config.set(scheduler="threads", num_workers=2), threadpool_limits(1, "blas"):
+            start = time.perf_counter()
+            u, sig, _ = da.linalg.svd_compressed(x, pb.k, iterator=iterator, n_power_iter=q, n_oversamples=p,
+                                                  seed=pb.seed, compute=True)
+            u = u.compute()
+            seconds = time.perf_counter() - start
+        peers.append({"iterator": iterator, "n_power_iter": q, "n_oversamples": p, "s": round(seconds, 1),
+                      "excess_error": pb.excess(u)})
+        log(f"  -> {peers[-1]}")
+    return {"scheduler": "threads, 2 workers, BLAS 1 thread each", "runs": peers}
+
+
+def _run_sklearn(pb: _Problem, peer_q: int, peer_p: int) -> dict | str:
+    """The scikit-learn peer on the matrix in memory (read first, not timed), at its defaults and at the
+    peer config; a note when scikit-learn is not installed."""
+    try:
+        from sklearn.utils.extmath import randomized_svd
+    except ImportError:
+        return "skipped: scikit-learn is not installed"
+    from tasks.model import blocks
+
+    log("sklearn: reading the matrix into memory")
+    M = np.empty((pb.n_lv, pb.n_tx), np.float32)
+    col = 0
+    for b in blocks(str(pb.store), "als")():
+        M[:, col:col + b.shape[1]] = b
+        col += b.shape[1]
+    runs = []
+    for n_iter, p in (("auto", 10), (peer_q, peer_p)):
+        log(f"sklearn randomized_svd n_iter={n_iter} n_oversamples={p}")
+        start = time.perf_counter()
+        u, _, _ = randomized_svd(M, pb.k, n_oversamples=p, n_iter=n_iter, random_state=pb.seed)
+        seconds = time.perf_counter() - start
+        runs.append({"n_iter": n_iter, "n_oversamples": p, "s": round(seconds, 1), "excess_error": pb.excess(u)})
+        log(f"  -> {runs[-1]}")
+    del M
+    return {"in_memory": True, "blas_threads": "default", "runs": runs}
+
+
+def _summarise(result: dict, ours: list[dict], gemm_before: dict[str, float], gemm_after: dict[str, float]) -> None:
+    """GEMM rates, each of our runs' share of the peak, and the fastest run within issue 4's target."""
+    peak = max(max(gemm_before.values()), max(gemm_after.values()))
+    result["gemm_gflop_per_s"] = {"before": gemm_before, "after": gemm_after, "peak": peak}
+    for run in ours:
+        run["over_gemm_peak"] = round(run["gflop_per_s"] / peak, 3)
+    good = [r for r in ours if r["excess_error"] < 1e-3]
+    best = min(good, key=lambda r: r["s"]) if good else None
+    result["fastest_under_0.1pct"] = best
+    result["target"] = "k = 256 in < 300 s at < 0.1 % excess error"
+    result["target_met"] = bool(best and best["s"] < 300)
+
+
+def main() -> int:
+    args = _parse_args()
     n_lv, h = args.views * N_LEDS, args.texture
     n_tx = h * h * 3
     k, configs = args.k, parse_configs(args.configs)
@@ -192,110 +335,22 @@ def main() -> int:
     }
     try:
         U, make_V = factors(n_lv, n_tx, args.rank, args.seed)
-        import zarr
-
-        existing = None
-        if store.exists():
-            existing = dict(zarr.open_group(str(store), mode="r", zarr_format=3).attrs).get("synthetic")
-        if existing == spec:
-            log(f"reusing {store}")
-        else:
-            log(f"writing {store} ({result['gb']} GB)")
-            V = make_V()
-            result["write_s"] = round(write_store(store, U, V, s, h, h, N_LEDS, spec), 1)
-            del V
-        band_cols = int(zarr.open_group(str(store), mode="r", zarr_format=3)["btf"].chunks[1]) * h * 3
-
-        # read rates: the chunk files, then one streaming pass as our method reads them
-        result["file_read_gb_per_s"] = round(file_read_rate(store), 2)
-        zarr_rate, zarr_pass_s = zarr_read_rate(store)
-        result["zarr_pass_gb_per_s"], result["zarr_pass_s"] = round(zarr_rate, 2), round(zarr_pass_s, 2)
-        log(f"read rates: files {result['file_read_gb_per_s']} GB/s, zarr pass {zarr_rate:.2f} GB/s")
-        from btfcore.model.truncated_svd import default_oversample, truncated_svd
-        from tasks.model import blocks
+        band_cols = _ensure_store(store, U, make_V, s, h, spec, result)
+        zarr_pass_s = _read_rates(store, result)
+        from btfcore.model.truncated_svd import default_oversample
 
         ls = sorted({k + (default_oversample(k) if p is None else p) for _, p in configs})
         gemm_before = gemm_rates(n_lv, band_cols, ls)
         log(f"GEMM GFLOP/s: {gemm_before}")
-
-        ours = []
-        for q, p in configs:
-            given = {} if q is None else {"n_iter": q, "oversample": p}
-            for rep in range(args.repeats):
-                log(f"ours: randomized {given or 'library defaults'} (run {rep + 1})")
-                start = time.perf_counter()
-                res = truncated_svd(blocks(str(store), "als"), n_lv, k, "randomized", seed=args.seed, **given)
-                seconds = time.perf_counter() - start
-                q, p = res.settings["n_iter"], res.settings["oversample"]
-                err = projection_error(res.U, U, s)
-                flops = (q + 2) * 4.0 * n_lv * n_tx * (k + p)
-                ours.append({"n_iter": q, "oversample": p, "library_default": not given, "passes": res.iterations,
-                             "s": round(seconds, 1),
-                             "excess_error": float(f"{err / optimal - 1:.3e}"),
-                             "gflop": round(flops / 1e9), "gflop_per_s": round(flops / seconds / 1e9, 1),
-                             "read_share": round(res.iterations * zarr_pass_s / seconds, 3),
-                             "zarr_gb_per_s": round(res.iterations * n_lv * n_tx * 4 / 1e9 / seconds, 2)})
-                log(f"  -> {ours[-1]}")
-        result["ours"] = ours
-
+        pb = _Problem(store, U, s, n_lv, n_tx, k, optimal, args.seed)
+        ours = result["ours"] = _run_ours(pb, configs, args.repeats, zarr_pass_s)
         if not args.skip_dask:
-            import dask
-            import dask.array as da
-            from threadpoolctl import threadpool_limits
-
-            x = da.from_zarr(str(store / "btf")).reshape(n_lv, -1)
-            peers = []
-            for iterator, q, p in (("power", 0, 10), ("power", peer_q, peer_p), ("QR", peer_q, peer_p)):
-                log(f"dask svd_compressed iterator={iterator} n_power_iter={q} n_oversamples={p}")
-                with dask.config.set(scheduler="threads", num_workers=2), threadpool_limits(1, "blas"):
-                    start = time.perf_counter()
-                    u, sig, _ = da.linalg.svd_compressed(x, k, iterator=iterator, n_power_iter=q, n_oversamples=p,
-                                                          seed=args.seed, compute=True)
-                    u = u.compute()
-                    seconds = time.perf_counter() - start
-                err = projection_error(u, U, s)
-                peers.append({"iterator": iterator, "n_power_iter": q, "n_oversamples": p, "s": round(seconds, 1),
-                              "excess_error": float(f"{err / optimal - 1:.3e}")})
-                log(f"  -> {peers[-1]}")
-            result["dask_svd_compressed"] = {"scheduler": "threads, 2 workers, BLAS 1 thread each",
-                                             "runs": peers}
-
+            result["dask_svd_compressed"] = _run_dask(pb, peer_q, peer_p)
         if not args.skip_sklearn:
-            try:
-                from sklearn.utils.extmath import randomized_svd
-            except ImportError:
-                result["sklearn_randomized_svd"] = "skipped: scikit-learn is not installed"
-            else:
-                log("sklearn: reading the matrix into memory")
-                M = np.empty((n_lv, n_tx), np.float32)
-                col = 0
-                for b in blocks(str(store), "als")():
-                    M[:, col:col + b.shape[1]] = b
-                    col += b.shape[1]
-                runs = []
-                for n_iter, p in (("auto", 10), (peer_q, peer_p)):
-                    log(f"sklearn randomized_svd n_iter={n_iter} n_oversamples={p}")
-                    start = time.perf_counter()
-                    u, _, _ = randomized_svd(M, k, n_oversamples=p, n_iter=n_iter, random_state=args.seed)
-                    seconds = time.perf_counter() - start
-                    err = projection_error(u, U, s)
-                    runs.append({"n_iter": n_iter, "n_oversamples": p, "s": round(seconds, 1),
-                                 "excess_error": float(f"{err / optimal - 1:.3e}")})
-                    log(f"  -> {runs[-1]}")
-                del M
-                result["sklearn_randomized_svd"] = {"in_memory": True, "blas_threads": "default", "runs": runs}
-
+            result["sklearn_randomized_svd"] = _run_sklearn(pb, peer_q, peer_p)
         gemm_after = gemm_rates(n_lv, band_cols, ls)
         log(f"GEMM GFLOP/s after: {gemm_after}")
-        peak = max(max(gemm_before.values()), max(gemm_after.values()))
-        result["gemm_gflop_per_s"] = {"before": gemm_before, "after": gemm_after, "peak": peak}
-        for run in ours:
-            run["over_gemm_peak"] = round(run["gflop_per_s"] / peak, 3)
-        good = [r for r in ours if r["excess_error"] < 1e-3]
-        best = min(good, key=lambda r: r["s"]) if good else None
-        result["fastest_under_0.1pct"] = best
-        result["target"] = "k = 256 in < 300 s at < 0.1 % excess error"
-        result["target_met"] = bool(best and best["s"] < 300)
+        _summarise(result, ours, gemm_before, gemm_after)
     finally:
         load["end"] = round(os.getloadavg()[0], 2)
         result["load_average_1min"] = load

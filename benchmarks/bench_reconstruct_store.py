@@ -69,7 +69,7 @@ def make_inputs(folder: Path, n_turn: int, size: int, n_s: int, k: int) -> tuple
     import zarr
 
     from tasks.integrity import create_array
-    from tasks.measurement import write_measurement
+    from tasks.stores.measurement import write_measurement
 
     n_lv = n_turn * N_CAM * N_LEDS
     rng = np.random.default_rng(2)

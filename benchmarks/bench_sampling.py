@@ -1,6 +1,6 @@
 """Benchmark: the greedy sampler against Matusik's random swap (paper 1, Alg. 1) on kappa(M U).
 
-Basis: the leading ``k`` left singular vectors of a smooth synthetic
+Basis: :func:`btfcore.acquisition.synthetic_basis.synthetic_log_abrdf_basis`, the leading ``k`` left singular vectors of a smooth synthetic
 log-ABRDF matrix (diffuse + Blinn-Phong lobe with random normals, albedos
 and exponents; ``--n-tx`` texels) over ``d x d`` light/view pairs of the
 UBO2014 directions (``d = 151``: 22,801 pairs). ``n_s``: 6 % of the rows
@@ -42,31 +42,13 @@ import numpy as np
 from _measure import log
 
 
-def synthetic_basis(n_dirs: int, n_tx: int, k: int, seed: int = 0) -> np.ndarray:
-    """Orthonormal ``(n_dirs**2, k)`` basis of a smooth synthetic log-ABRDF matrix."""
-    from btfcore.capture.resample import lv_product, ubo2014_directions
-
-    rng = np.random.default_rng(seed)
-    d = ubo2014_directions()[:n_dirs]
-    light, view = lv_product(d, d)
-    n = np.column_stack([rng.normal(0, 0.25, (n_tx, 2)), np.ones(n_tx)])
-    n /= np.linalg.norm(n, axis=1, keepdims=True)
-    h = light + view
-    h /= np.linalg.norm(h, axis=1, keepdims=True)
-    ci, co = np.clip(light @ n.T, 0, None), np.clip(view @ n.T, 0, None)
-    spec = np.clip(h @ n.T, 0, None) ** rng.uniform(5, 80, n_tx)
-    B = np.log(1e-3 + ci * (rng.uniform(0.2, 0.8, n_tx) + rng.uniform(0, 1, n_tx) * spec) * (0.5 + 0.5 * co))
-    w, V = np.linalg.eigh(B.T @ B)                               # n_tx x n_tx Gram route
-    U = B @ V[:, ::-1][:, :k]
-    return U / np.linalg.norm(U, axis=0)
-
-
 def run_scale(dirs: int, k: int, n_tx: int, n_s: int | None, swap_steps: int, seed: int) -> dict:
     """Greedy and random swap on one basis; the comparison at equal kappa."""
     from btfcore.acquisition.sampling import greedy, random_swap
+    from btfcore.acquisition.synthetic_basis import synthetic_log_abrdf_basis
 
     t = time.perf_counter()
-    U = synthetic_basis(dirs, n_tx, k, seed)
+    U = synthetic_log_abrdf_basis(dirs, n_tx, k, seed)
     n_s = n_s or int(round(0.06 * U.shape[0]))
     log(f"basis {U.shape} in {time.perf_counter() - t:.1f} s, n_s = {n_s}")
     t = time.perf_counter()

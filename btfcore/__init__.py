@@ -1,7 +1,7 @@
 """Pure numerics of btf-pipeline: arrays in, arrays out.
 
 No file paths, no dask, no prefect, no zarr: those live in :mod:`tasks` and
-:mod:`flows` (DESIGN §2). A test enforces the import direction.
+:mod:`flows` (docs/architecture.md, "Layers"). A test enforces the import direction.
 """
 
 __version__ = "0.1.0"

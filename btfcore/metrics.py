@@ -13,9 +13,9 @@ A BTF ``B`` has rows = light/view pairs (textures) and any trailing shape;
 
 References
 ----------
-.. [1] The thesis (``reference/000_07a399c75a6bdea8.txt``): App. paper 1,
-   §4.1.1, the relative projection error (line 640); App. "super-resolution"
-   paper, §5.3, eqs. (8)-(10) (lines 1685-1693).
+.. [1] The thesis, App. paper 1 (den Brok et al.), §4.1.1, the relative
+   projection error; App. SR paper ("Per-image super-resolution for material
+   BTFs", paper 5), §5.3, eqs. (8)-(10).
 .. [2] Y. Dong, J. Wang, X. Tong, J. Snyder, Y. Lan, M. Ben-Ezra and B. Guo,
    "Manifold bootstrapping for SVBRDF capture", ACM TOG 29(4), 2010 (the
    mean RMSE / PSNR convention the SR paper follows).

@@ -25,10 +25,10 @@ def reconstruct_stage(measurement: str, model: str, out: str, settings: Reconstr
     """Build the solve operator and apply it over every texel band (one Dask graph); staged output."""
     from distributed import Client
 
-    from flows.simulate import _progress_bar
+    from flows.progress import progress_bar
     from tasks.reconstruct import reconstruct_store
 
-    bar, update = _progress_bar("reconstruct", progress)
+    bar, update = progress_bar("reconstruct", progress)
     with bar, Client(scheduler_address, set_as_default=False) as client:
         return reconstruct_store(measurement, model, out, settings, client, overwrite=overwrite,
                                  calibration=calibration, progress=update)
@@ -44,11 +44,12 @@ def reconstruct_evaluation(measurement: str, out: str) -> dict[str, Any]:
 
     capture = zarr.open_group(measurement, mode="r", zarr_format=3).attrs.get("source")
     try:
-        if not capture or not Path(capture).exists() or not open_capture_store(capture).has_truth:
-            return {}
+        store = open_capture_store(capture) if capture and Path(capture).exists() else None
     except ValueError:
         return {}
-    return {"capture": capture, **btf_error_against_truth(out, capture)}
+    if store is None or not store.has_truth:
+        return {}
+    return {"capture": capture, **btf_error_against_truth(out, store)}
 
 
 @flow(name="btf-reconstruct", log_prints=False)

@@ -1,6 +1,7 @@
 """``btf sample``, ``btf plan`` and ``btf render``: sparse sampling, capture plans, renderings.
 
-Wiring only: argument parsing, calls into :mod:`tasks.sample`,
+Wiring only: the arguments and the run of each command (entries of the command
+table :data:`flows.cli.COMMANDS`), calls into :mod:`tasks.sample`,
 :mod:`tasks.plan` and :mod:`tasks.render`, JSON summaries on stdout and
 progress on stderr. These commands work on small in-memory arrays (a basis,
 a plan, one rendering), so they run in the calling process and start neither
@@ -67,13 +68,10 @@ def _positive_int(text: str) -> int:
     return v
 
 
-def add_acquisition_commands(sub: Any) -> None:
-    """Add ``sample``, ``plan`` and ``render`` to the subcommand parsers of :func:`flows.cli.build_parser`."""
+def add_sample_arguments(p: argparse.ArgumentParser) -> None:
+    """The options of ``btf sample``."""
     from btfcore.dome import DEVICE_NAMES
-    from btfcore.acquisition.time_model import VMV_TABLE2
 
-    p = sub.add_parser("sample", help="sparse sampling: which light/view pairs to measure (kappa-optimised)",
-                       description=SAMPLE_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--model", required=True, metavar="MODEL_DIR", help="output folder of `btf build-db` (or its model.zarr)")
     p.add_argument("--class", dest="cls", required=True, metavar="CLS", help="material class of the basis (classes/CLS)")
     p.add_argument("--basis", default="log_y", choices=("log_y", "abtf_log_y", "als"),
@@ -94,8 +92,12 @@ def add_acquisition_commands(sub: Any) -> None:
                    help="most steps (random swap: trial swaps, default 10,000; greedy: per phase, default 2,000)")
     p.add_argument("--out", required=True, metavar="SAMPLES_JSON", help="where to write the samples")
 
-    p = sub.add_parser("plan", help="acquisition plan (JSON + CSV) and its predicted acquisition time",
-                       description=PLAN_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
+
+def add_plan_arguments(p: argparse.ArgumentParser) -> None:
+    """The options of ``btf plan``."""
+    from btfcore.acquisition.time_model import VMV_TABLE2
+    from btfcore.dome import DEVICE_NAMES
+
     p.add_argument("--device", default="bonn-dome2", choices=DEVICE_NAMES,
                    help="dome preset [default: bonn-dome2, the thesis' DOME II]")
     p.add_argument("--strategy", required=True, choices=PLAN_STRATEGIES, help="what to capture")
@@ -105,8 +107,9 @@ def add_acquisition_commands(sub: Any) -> None:
                    help="shutter times of VMV Table 2 for this material [default: the ExposureModel default]")
     p.add_argument("--out", required=True, metavar="PLAN_DIR", help="output folder (plan.json, plan.csv)")
 
-    p = sub.add_parser("render", help="render a BTF store on a sphere, cylinder or plane to a PNG",
-                       description=RENDER_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
+
+def add_render_arguments(p: argparse.ArgumentParser) -> None:
+    """The arguments of ``btf render``."""
     p.add_argument("btf", metavar="BTF_STORE", help="finished BTF store (.zarr)")
     p.add_argument("--shape", default="sphere", choices=("sphere", "cylinder", "plane"), help="[default: sphere]")
     p.add_argument("--env", default=None, metavar="EXR",
@@ -120,14 +123,26 @@ def add_acquisition_commands(sub: Any) -> None:
     p.add_argument("--out", required=True, metavar="PNG", help="image to write")
 
 
-def run_acquisition_command(args: argparse.Namespace) -> int | None:
-    """Run ``args.command`` if it is one of this module's; None otherwise. Returns the exit code."""
-    commands = {"sample": _sample, "plan": _plan, "render": _render}
-    if args.command not in commands:
-        return None
-    summary = commands[args.command](args)   # errors: one message and exit code by flows.cli.main
+def _print_summary(summary: dict[str, Any]) -> int:
+    """Print a command's JSON summary on stdout; exit code 0 (errors: one message and exit code by
+    :func:`flows.cli.main`)."""
     print(json.dumps(summary, indent=2))
     return 0
+
+
+def run_sample(args: argparse.Namespace) -> int:
+    """``btf sample``: write the samples, print their summary; the exit code."""
+    return _print_summary(_sample(args))
+
+
+def run_plan(args: argparse.Namespace) -> int:
+    """``btf plan``: write the plan, print its predicted time; the exit code."""
+    return _print_summary(_plan(args))
+
+
+def run_render(args: argparse.Namespace) -> int:
+    """``btf render``: write the PNG, print its summary; the exit code."""
+    return _print_summary(_render(args))
 
 
 # --------------------------------------------------------------------------- sample

@@ -1,9 +1,10 @@
 """Prefect flow of ``btf evaluate acquisition``: every acquisition strategy against the ground truth.
 
 Stages (one Prefect task each; each builds one Dask graph over its chunks,
-DESIGN §2): the truth database, the per-material bases, the leave-one-out
-reconstructions and scores with the renderings, and the report. Numerics
-live in :mod:`tasks.evaluate_acquisition` and :mod:`btfcore`.
+docs/architecture.md, "Execution"): the truth database, the per-material
+bases, the leave-one-out reconstructions and scores with the renderings, and
+the report. Numerics live in :mod:`tasks.evaluate_acquisition` and
+:mod:`btfcore`.
 """
 
 from __future__ import annotations
@@ -22,10 +23,10 @@ def evaluate_stage(db: str, out: str, scheduler_address: str, config: Evaluation
                    progress: bool) -> dict[str, Any]:
     from distributed import Client
 
-    from flows.simulate import _progress_bars
+    from flows.progress import progress_bars
     from tasks.evaluate_acquisition import evaluate_acquisition
 
-    with _progress_bars(progress) as bar, Client(scheduler_address, set_as_default=False) as client:
+    with progress_bars(progress) as bar, Client(scheduler_address, set_as_default=False) as client:
         return evaluate_acquisition(db, out, client, config, progress=bar)
 
 

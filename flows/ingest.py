@@ -47,10 +47,10 @@ def ingest_stage(capture: str, out: str, scheduler_address: str, overwrite: bool
     """Ingest the views; a replacement of another ingest's output stays staged (not committed)."""
     from distributed import Client
 
-    from flows.simulate import _progress_bar
+    from flows.progress import progress_bar
     from tasks.ingest import ingest_capture
 
-    bar, update = _progress_bar("ingest", progress)
+    bar, update = progress_bar("ingest", progress)
     with bar, Client(scheduler_address, set_as_default=False) as client:
         return ingest_capture(capture, out, client, overwrite=overwrite, calibration=calibration, progress=update,
                               commit=False)
@@ -68,9 +68,10 @@ def ingest_evaluation(capture: str, out: str) -> dict[str, Any]:
     from tasks.ingest import btf_error_against_truth
     from tasks.stores import open_capture_store
 
-    if not open_capture_store(capture).has_truth:
+    store = open_capture_store(capture)                  # opened once, for the check and the errors
+    if not store.has_truth:
         return {}
-    return btf_error_against_truth(out, capture)
+    return btf_error_against_truth(out, store)
 
 
 @task(name="ingest-validity", cache_policy=NO_CACHE)
@@ -132,15 +133,17 @@ def ingest_database_stage(stores: list[str], out_dir: str, scheduler_address: st
 
     from distributed import Client
 
-    from flows.simulate import _progress_bar
+    from flows.progress import progress_bar
     from tasks.ingest import btf_error_against_truth, ingest_capture
+    from tasks.stores import open_capture_store
 
     results = {}
-    bar, update = _progress_bar("ingest", progress)
+    bar, update = progress_bar("ingest", progress)
     with bar, Client(scheduler_address, set_as_default=False) as client:
         for store in stores:
             out = str(Path(out_dir) / Path(store).name)
-            results[Path(store).stem] = {**ingest_capture(store, out, client, calibration=calibration,
+            capture = open_capture_store(store)              # opened once, for the ingest and the errors
+            results[Path(store).stem] = {**ingest_capture(capture, out, client, calibration=calibration,
                                                           progress=update),
-                                         **btf_error_against_truth(out, store)}
+                                         **btf_error_against_truth(out, capture)}
     return results

@@ -1,4 +1,5 @@
-"""Prefect flow of ``btf build-db``: the model database of a folder of ingested BTFs (DESIGN stage 8)."""
+"""Prefect flow of ``btf build-db``: the model database of a folder of ingested BTFs (docs/architecture.md,
+"Stages", stage 8)."""
 
 from __future__ import annotations
 
@@ -17,10 +18,10 @@ def build_stage(db: str, out: str, scheduler_address: str, settings: ModelSettin
                 class_map: dict[str, str] | None, progress: bool) -> dict[str, Any]:
     from distributed import Client
 
-    from flows.simulate import _progress_bars
+    from flows.progress import progress_bars
     from tasks.model import build_database
 
-    with _progress_bars(progress) as bar, Client(scheduler_address, set_as_default=False) as client:
+    with progress_bars(progress) as bar, Client(scheduler_address, set_as_default=False) as client:
         return build_database(db, out, client, settings=settings, class_map=class_map, progress=bar)
 
 

@@ -1,4 +1,4 @@
-"""Prefect flow of ``btf resample``: a BTF store onto a common light x view sampling (DESIGN stage 7)."""
+"""Prefect flow of ``btf resample``: a BTF store onto a common light x view sampling (docs/architecture.md, "Stages", stage 7)."""
 
 from __future__ import annotations
 
@@ -19,10 +19,10 @@ def resample_stage(btf: str, out: str, sampling: str, scheduler_address: str, ov
                    progress: bool) -> dict[str, Any]:
     from distributed import Client
 
-    from flows.simulate import _progress_bar
+    from flows.progress import progress_bar
     from tasks.resample import resample_store
 
-    bar, update = _progress_bar("resample", progress)
+    bar, update = progress_bar("resample", progress)
     with bar, Client(scheduler_address, set_as_default=False) as client:
         return resample_store(btf, out, client, sampling=sampling, overwrite=overwrite, progress=update)
 

@@ -1,9 +1,10 @@
 """Execution environment of a ``btf`` run: one Prefect API and one Dask cluster.
 
 The cluster and the Prefect API are chosen by a profile file (``infra/local.yaml``
-by default, DESIGN §5), never by code edits. With no Prefect server configured,
-one temporary server is started for the run and its URL is handed to the Dask
-workers, so that no worker starts a server of its own.
+by default), never by code edits. With no Prefect server configured, one
+temporary server is started for the run and its URL is handed to the Dask
+workers, so that no worker starts a server of its own (docs/architecture.md,
+"Execution").
 """
 
 from __future__ import annotations
@@ -24,15 +25,16 @@ from distributed import WorkerPlugin
 DEFAULT_PROFILE = Path(__file__).resolve().parents[1] / "infra" / "local.yaml"
 
 #: Environment every Dask worker process starts with: one thread per library
-#: (parallelism comes from Dask), no huge-page hint (DESIGN §5), and a fixed
-#: glibc mmap threshold. By default the threshold grows (up to 32 MiB) each time
-#: a large array is freed, after which band-sized arrays come from the heap and
-#: fragment it: fitting one material's five bases then held 880 MB after its
-#: ALS basis and peaked at 980 MB; with the threshold fixed at 4 MiB, 323 MB
-#: and 599 MB (docs/benchmarks.md, out of core). The heap keeps up to 8 MiB
-#: free at its top (trim threshold): trimming at 64 KiB gave every small array
-#: fresh pages, which cost the acquisition evaluation a third of its time in
-#: page faults (sys time 2.0 s vs 0.5 s per material, docs/benchmarks.md).
+#: (parallelism comes from Dask), no huge-page hint, and a fixed glibc mmap
+#: threshold (docs/architecture.md, "Execution"). By default the threshold
+#: grows (up to 32 MiB) each time a large array is freed, after which
+#: band-sized arrays come from the heap and fragment it: fitting one material's
+#: five bases then held 880 MB after its ALS basis and peaked at 980 MB; with
+#: the threshold fixed at 4 MiB, 323 MB and 599 MB (docs/benchmarks.md, out of
+#: core). The heap keeps up to 8 MiB free at its top (trim threshold): trimming
+#: at 64 KiB gave every small array fresh pages, which cost the acquisition
+#: evaluation a third of its time in page faults (sys time 2.0 s vs 0.5 s per
+#: material, docs/benchmarks.md).
 WORKER_ENVIRON = {
     "OMP_NUM_THREADS": "1",
     "MKL_NUM_THREADS": "1",
@@ -521,9 +523,9 @@ def _close_quietly(client: Any, cluster: Any) -> None:
 
 
 class WorkerSetup(WorkerPlugin):
-    """Dask worker plugin: pins OpenCV to one thread (parallelism comes from Dask, DESIGN §5) and
-    imports the pipeline's numerical stack when a worker starts, so that the first task of a run
-    does not pay for it (about a second per worker on two cores)."""
+    """Dask worker plugin: pins OpenCV to one thread (parallelism comes from Dask) and imports the
+    pipeline's numerical stack when a worker starts, so that the first task of a run does not pay
+    for it (about a second per worker on two cores; docs/architecture.md, "Execution")."""
 
     modules = ("tasks.ingest", "tasks.simulate", "tasks.resample")
 

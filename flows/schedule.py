@@ -3,7 +3,7 @@
 A maintainer runs ``btf schedule build-db DB --out MODEL --cron "0 3 * * *"``
 on a machine that stays up, against a running Prefect server
 (``PREFECT_API_URL``; cron schedules do not fire on a temporary server,
-DESIGN §5). Each scheduled run starts the Dask cluster of its execution
+docs/architecture.md, "Pitfalls"). Each scheduled run starts the Dask cluster of its execution
 profile, builds the database incrementally (only new or changed materials
 are fitted) and writes the reports.
 """

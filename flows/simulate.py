@@ -2,54 +2,22 @@
 
 Flows only wire stages together. Each stage is one Prefect task that builds
 one Dask computation over all chunks on the cluster whose scheduler address it
-is given (DESIGN §2): one Prefect task per chunk would flood the Prefect
-database.
+is given: one Prefect task per chunk would flood the Prefect database
+(docs/architecture.md, "Execution").
 """
 
 from __future__ import annotations
 
-import contextlib
 import time
-from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 from prefect import flow, task
 from prefect.cache_policies import NO_CACHE
 
+from flows.progress import progress_bar
 from tasks.report import simulation_report, write_json
 from tasks.simulate import SimulationConfig, simulate_database
-
-
-def _progress_bar(desc: str, enabled: bool):
-    from tqdm.auto import tqdm
-
-    bar = tqdm(total=0, desc=desc, unit="view", disable=None if enabled else True, leave=True)
-
-    def update(done: int, total: int) -> None:
-        bar.total = total
-        bar.n = done
-        bar.refresh()
-
-    return bar, update
-
-
-@contextlib.contextmanager
-def _progress_bars(enabled: bool) -> Iterator[Callable[[str], Callable[[int, int], None]]]:
-    """``bar(desc)`` opens one more progress bar and returns its ``(done, total)`` update; all close on exit
-    (stages whose tasks report several phases: bases, evaluation, ...)."""
-    bars = []
-
-    def bar(desc: str) -> Callable[[int, int], None]:
-        b, update = _progress_bar(desc, enabled)
-        bars.append(b)
-        return update
-
-    try:
-        yield bar
-    finally:
-        for b in bars:
-            b.close()
 
 
 # Retrying the stage resumes it: finished views are skipped, pending ones re-run.
@@ -58,7 +26,7 @@ def simulate_stage(config: SimulationConfig, out_dir: str, scheduler_address: st
                    progress: bool) -> dict[str, Any]:
     from distributed import Client
 
-    bar, update = _progress_bar(f"simulate {config.device}", progress)
+    bar, update = progress_bar(f"simulate {config.device}", progress)
     with bar, Client(scheduler_address, set_as_default=False) as client:
         result = simulate_database(config, out_dir, client, overwrite=overwrite, progress=update)
     return {"stores": result.stores, "views_rendered": result.views_done,

@@ -16,7 +16,8 @@ from typing import Any
 Progress = Callable[[int, int], None]
 
 
-def wait_all(futures: Sequence[Any], progress: Progress | None = None) -> list[Any]:
+def wait_all(futures: Sequence[Any], progress: Progress | None = None,
+             weights: Sequence[int] | None = None) -> list[Any]:
     """Wait for ``futures`` as they finish; their results in the order given.
 
     Parameters
@@ -25,6 +26,9 @@ def wait_all(futures: Sequence[Any], progress: Progress | None = None) -> list[A
         Submitted tasks.
     progress : callable, optional
         ``progress(done, total)`` after each finished task.
+    weights : sequence of int, optional
+        Each task's share of the work (e.g. the views it writes); ``progress`` then counts
+        those (``total = sum(weights)``) instead of tasks.
 
     Raises
     ------
@@ -33,13 +37,18 @@ def wait_all(futures: Sequence[Any], progress: Progress | None = None) -> list[A
     """
     from distributed import as_completed
 
-    for done, future in enumerate(as_completed(futures), 1):
+    share = {f.key: int(w) for f, w in zip(futures, weights)} if weights is not None else {}
+    total = sum(share.values()) if weights is not None else len(futures)
+    done = 0
+    for future in as_completed(futures):
         future.result()                              # re-raises the worker's error here
+        done += share.get(future.key, 1)
         if progress is not None:
-            progress(done, len(futures))
+            progress(done, total)
     return [f.result() for f in futures]
 
 
-def run_all(client: Any, fn: Callable[..., Any], args: Sequence[tuple], progress: Progress | None = None) -> list[Any]:
+def run_all(client: Any, fn: Callable[..., Any], args: Sequence[tuple], progress: Progress | None = None,
+            weights: Sequence[int] | None = None) -> list[Any]:
     """``fn(*a)`` for every ``a`` in ``args`` as one task each; the results in order (see :func:`wait_all`)."""
-    return wait_all([client.submit(fn, *a, pure=False) for a in args], progress)
+    return wait_all([client.submit(fn, *a, pure=False) for a in args], progress, weights)

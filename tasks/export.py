@@ -14,6 +14,8 @@ from typing import Sequence
 import numpy as np
 import zarr
 
+from tasks.stores.btf import BtfStore, open_btf_store
+
 
 def parse_selection(text: str | None, n_lv: int) -> list[int]:
     """Rows to export from ``"all"``/``None`` or a comma list of indices and ``a-b`` ranges."""
@@ -62,7 +64,7 @@ def nonfinite_texels(btf_path: str | os.PathLike, rows: Sequence[int]) -> dict[i
         Rows of its ``btf`` array (n_lv, h, w, C) to check; read a chunk of
         rows at a time.
     """
-    btf = zarr.open_group(str(btf_path), mode="r", zarr_format=3)["btf"]
+    btf = BtfStore(btf_path).btf
     read, bad = _RowReader(btf), {}
     for row in sorted(set(rows)):
         count = int((~np.isfinite(read(row))).any(axis=-1).sum())
@@ -102,11 +104,8 @@ def export_exr(btf_path: str | os.PathLike, out_dir: str | os.PathLike, rows: Se
     """
     import OpenEXR
 
-    group = zarr.open_group(str(btf_path), mode="r", zarr_format=3)
-    if group.attrs.get("schema") != "btf-texture":
-        raise ValueError(f"{btf_path}: not a BTF store (schema {group.attrs.get('schema')!r}); "
-                         "give the output of `btf ingest`")
-    btf = group["btf"]
+    store = open_btf_store(btf_path, require_complete=False, produced_by="`btf ingest`")
+    group, btf = store.group, store.btf
     rows = list(range(btf.shape[0])) if rows is None else list(rows)
     if not keep_nonfinite:
         bad = nonfinite_texels(btf_path, rows)

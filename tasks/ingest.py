@@ -1,6 +1,7 @@
-"""Capture store -> BTF store, one view per Dask task (DESIGN stages 2-6).
+"""Capture store -> BTF store, one view per Dask task (docs/architecture.md, "Stages": HDR, demosaic,
+rectify and demultiplex of each view).
 
-The BTF store ("btf-texture" 1.0, a Zarr v3 group) holds
+The BTF store (``btf-texture`` 1.0, :mod:`tasks.stores.btf`, docs/btf-store.md) an ingest writes holds
 
 * ``btf``: float32 ``(n_lv, h, w, 3)`` linear radiance (DN/s before radiometric
   correction), rows flattened over (turntable, camera, light), chunked one view
@@ -29,13 +30,12 @@ A capture executed from an acquisition plan (``btf simulate --plan``) is
 ingested to a BTF store like any other when it takes every bracket and its
 patterns separate every LED (full single-light, full S-matrix,
 bootstrapping); otherwise :func:`ingest_capture` writes a measurement store
-(``btf-measurement``, :mod:`tasks.measurement`) instead: nothing is
+(``btf-measurement``, :mod:`tasks.stores.measurement`, filled by :mod:`tasks.measurement`) instead: nothing is
 demultiplexed, ``btf reconstruct`` solves for the BTF.
 """
 
 from __future__ import annotations
 
-import functools
 import hashlib
 import json
 import os
@@ -46,18 +46,47 @@ from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
-import zarr
 
 from btfcore.capture.demultiplex import demultiplex_operator
 from btfcore.capture.view_chain import IngestSettings, lv_directions, process_view, view_window
-from tasks.integrity import create_array
+from btfcore.model.colour import REC709_LUMA
+from tasks.compute import run_all
+from tasks.measurement import (
+    ingest_measurement,
+    measurement_error_against_truth,
+    needs_measurement_store,
+    process_brackets,
+)
 from tasks.radiometric import CALIBRATED_UNITS, Calibration
-from tasks.staging import begin_store, finish_store, staged_target, staging_path, store_attrs
+from tasks.staging import staged_target, staging_path, store_attrs
 from tasks.staging import commit_staged as _commit_staged
-from tasks.stores import CaptureStore, open_capture_store, to_json_attr
+from tasks.stores import CaptureMetadata, CaptureStore, open_capture_store
+from tasks.stores.btf import (
+    LV_ORDER,
+    SCHEMA_NAME,
+    SCHEMA_VERSION,
+    UNCORRECTED_UNITS,
+    BtfStore,
+    band_rows,
+    create_btf_store,
+    open_btf_store,
+)
+from tasks.stores.measurement import SCHEMA_NAME as MEASUREMENT_SCHEMA
+from tasks.stores.measurement import measurement_target
 
-SCHEMA_NAME = "btf-texture"
-SCHEMA_VERSION = "1.0"
+__all__ = [
+    "band_rows",
+    "btf_error_against_truth",
+    "check_capture",
+    "check_ingest",
+    "commit_staged",
+    "create_ingest_store",
+    "ingest_capture",
+    "ingest_hash",
+    "ingest_view",
+    "reused_buffer",
+    "staging_path",
+]
 
 
 def ingest_hash(capture: CaptureStore, settings: IngestSettings, calibration: Calibration | None = None) -> str:
@@ -90,8 +119,9 @@ def commit_staged(out: str | os.PathLike) -> Path:
     return _commit_staged(out, "ingest")
 
 
-def check_capture(capture_path: str | os.PathLike) -> CaptureStore:
-    """Open and validate a capture store for ingest, before any output is touched.
+def check_capture(capture: str | os.PathLike | CaptureStore) -> CaptureStore:
+    """Open and validate a capture store for ingest (or take the one already opened), before any
+    output is touched.
 
     Raises
     ------
@@ -100,21 +130,21 @@ def check_capture(capture_path: str | os.PathLike) -> CaptureStore:
     ValueError
         Its illumination patterns cannot be demultiplexed into single LEDs.
     """
-    capture = open_capture_store(capture_path)
-    from tasks.measurement import needs_measurement_store
+    if not isinstance(capture, CaptureStore):
+        capture = open_capture_store(capture)
     if needs_measurement_store(capture):
         return capture                        # a sparse / partial plan capture: a measurement store, not demultiplexed
     try:
         demultiplex_operator(capture.illumination)
     except ValueError as exc:
         raise ValueError(
-            f"{capture_path}: illumination ({capture.n_illum} patterns x {capture.n_leds} LEDs) cannot be "
+            f"{capture.path}: illumination ({capture.n_illum} patterns x {capture.n_leds} LEDs) cannot be "
             f"demultiplexed: {exc}; the patterns must separate every LED (single LEDs or an S-matrix): fix the "
             "store's illumination array or capture again with such patterns") from None
     return capture
 
 
-def check_ingest(capture_path: str | os.PathLike, out_path: str | os.PathLike, *,
+def check_ingest(capture_path: str | os.PathLike | CaptureStore, out_path: str | os.PathLike, *,
                  settings: IngestSettings = IngestSettings(), overwrite: bool = False,
                  calibration: Calibration | None = None) -> tuple[CaptureStore, tuple[Path, bool]]:
     """Everything ``btf ingest`` refuses, checked before any work (the CLI calls it before a cluster starts).
@@ -122,7 +152,7 @@ def check_ingest(capture_path: str | os.PathLike, out_path: str | os.PathLike, *
     Returns
     -------
     capture : CaptureStore
-        The validated capture store.
+        The validated capture store (``capture_path`` itself when it is one already).
     target : tuple of (Path, bool)
         The store this ingest writes and whether it is the staging store of a replacement.
 
@@ -134,49 +164,25 @@ def check_ingest(capture_path: str | os.PathLike, out_path: str | os.PathLike, *
         ``out_path`` holds another output and not ``overwrite``.
     """
     capture = check_capture(capture_path)
-    from tasks.measurement import measurement_target, needs_measurement_store
     if needs_measurement_store(capture):
         if calibration is not None:
             raise ValueError(
-                f"{capture_path}: a plan capture that is not a full set ({capture.meta.plan.get('strategy')!r} plan) "
+                f"{capture.path}: a plan capture that is not a full set ({capture.meta.plan.get('strategy')!r} plan) "
                 "is ingested to a measurement store, which is not radiometrically corrected (a multiplexed "
                 "row mixes LEDs whose RGB gains differ); ingest it without --white/--colour-matrix and pass "
                 "them to `btf reconstruct` instead (docs/measurement-store.md)")
         return capture, measurement_target(capture, out_path, settings, overwrite)
     if calibration is not None and calibration.led_gain is not None and len(calibration.led_gain) != capture.n_leds:
         raise ValueError(f"{calibration.info.get('white_standard')}: the white standard has "
-                         f"{len(calibration.led_gain)} LEDs, the capture {capture_path} {capture.n_leds}; "
+                         f"{len(calibration.led_gain)} LEDs, the capture {capture.path} {capture.n_leds}; "
                          "calibrate with a white standard captured on the same dome")
     return capture, _ingest_target(Path(out_path), ingest_hash(capture, settings, calibration), overwrite)
 
 
-#: Bytes of one chunk of the ``btf`` array that :func:`band_rows` aims for.
-CHUNK_BYTES = 4 << 20
-
-
-def band_rows(n_leds: int, h: int, w: int) -> int:
-    """Texture rows per chunk of ``btf``: one view's LEDs x a band of rows, about :data:`CHUNK_BYTES`.
-
-    A view task writes every band of its view (whole chunks, so parallel views never share one),
-    and the model fitting streams bands of texels across all views without reading whole views.
-    """
-    return int(min(h, max(1, CHUNK_BYTES // (n_leds * w * 3 * 4))))
-
-
-def material_of(capture: CaptureStore) -> dict[str, Any] | None:
-    """``{"material_id", "class"}`` of a simulated capture (from its ground truth); ``None`` for a
-    capture of a real sample, whose class the model database is told separately."""
-    if not capture.has_truth:
-        return None
-    material = dict(capture.truth.attrs.get("material") or {})
-    if not material.get("class_name"):
-        return None
-    return {"material_id": material.get("material_id", Path(capture.path).stem), "class": material["class_name"]}
-
-
-def create_btf_store(path: str | os.PathLike, capture: CaptureStore, settings: IngestSettings, *,
-                     overwrite: bool = False, calibration: Calibration | None = None) -> zarr.Group:
-    """Create the BTF store of an ingest at ``path``, or reopen an unfinished one of the same ingest.
+def create_ingest_store(path: str | os.PathLike, capture: CaptureStore, settings: IngestSettings, *,
+                        overwrite: bool = False, calibration: Calibration | None = None) -> BtfStore:
+    """Create the BTF store of an ingest at ``path`` (:func:`tasks.stores.btf.create_btf_store`), or
+    reopen an unfinished one of the same ingest.
 
     ``overwrite`` replaces a store of another ingest at ``path`` in place; :func:`ingest_capture`
     passes it only for its staging store, never for a finished output.
@@ -184,54 +190,28 @@ def create_btf_store(path: str | os.PathLike, capture: CaptureStore, settings: I
     key = ingest_hash(capture, settings, calibration)
     attrs = store_attrs(path)
     if attrs is not None and attrs.get("ingest_hash") == key:
-        return zarr.open_group(str(path), mode="r+", zarr_format=3)
+        return BtfStore(path, "r+")
     if attrs is not None and not overwrite:
         raise _refusal(path, attrs, key)
     meta = capture.meta
     h, w = meta.texture_shape
     n_turn, n_cam, n_illum, n_leds = capture.n_turn, capture.n_cam, capture.n_illum, capture.n_leds
-    group = begin_store(path)
-    create_array(group, "btf", shape=(n_turn * n_cam * n_leds, h, w, 3), chunks=(n_leds, band_rows(n_leds, h, w), w, 3),
-                       dtype="float32", fill_value=0.0, compressors=None,
-                       dimension_names=["lv", "tex_row", "tex_col", "channel"])
     light_dir, view_dir, lv_index = lv_directions(meta.led_position, meta.camera_R, meta.camera_t,
                                                   meta.turntable_angle)
-    for name, data in (("light_dir", light_dir), ("view_dir", view_dir), ("lv_index", lv_index)):
-        create_array(group, name, shape=data.shape, dtype=data.dtype, chunks=data.shape, compressors=None)[...] = data
-    create_array(group, "valid_fraction", shape=(n_turn, n_cam, n_illum), chunks=(1, 1, n_illum),
-                       dtype="float64", fill_value=0.0, compressors=None)
-    create_array(group, "written", shape=(n_turn, n_cam), chunks=(1, 1), dtype="uint8", fill_value=0,
-                       compressors=None)
-    units = "DN/s per unit LED drive, before radiometric correction"
+    small = {}
+    units = UNCORRECTED_UNITS
     if calibration is not None:
-        for name in ("led_gain", "colour_matrix"):
-            data = getattr(calibration, name)
-            if data is not None:
-                create_array(group, name, shape=data.shape, dtype="float64", chunks=data.shape,
-                                   compressors=None)[...] = data
+        small = {name: np.asarray(getattr(calibration, name), dtype=np.float64)
+                 for name in ("led_gain", "colour_matrix") if getattr(calibration, name) is not None}
         if calibration.led_gain is not None:
             units = CALIBRATED_UNITS
-    group.attrs.put(to_json_attr({
-        "schema": SCHEMA_NAME, "schema_version": SCHEMA_VERSION, "units": units,
-        "radiometric": None if calibration is None else calibration.info,
-        "lv_order": ["turntable", "camera", "light"], "texture_shape": [h, w],
-        "source": str(capture.path), "ingest_hash": key, "settings": asdict(settings), "complete": False,
-        "turntable_cameras_leds": [n_turn, n_cam, n_leds], "material": material_of(capture),
-    }))
-    return finish_store(path, group)
-
-
-@functools.lru_cache(maxsize=4)
-def _validated_capture(path: str, stamp: int) -> CaptureStore:
-    return open_capture_store(path)
-
-
-def open_capture_once(path: str) -> CaptureStore:
-    """Open and validate a capture once per worker process, not once per view (validation costs
-    about a tenth of a view's work); a change of the store's root metadata opens it again."""
-    root = Path(path) / "zarr.json"
-    stamp = root.stat().st_mtime_ns if root.is_file() else time.time_ns()   # a URL: not cached
-    return _validated_capture(str(path), stamp)
+    return create_btf_store(path, {
+        "units": units, "radiometric": None if calibration is None else calibration.info,
+        "lv_order": LV_ORDER, "source": str(capture.path), "ingest_hash": key, "settings": asdict(settings),
+        "turntable_cameras_leds": [n_turn, n_cam, n_leds], "material": capture.material,
+    }, light_dir=light_dir, view_dir=view_dir, lv_index=lv_index, texture_shape=(h, w), rows_per_chunk=n_leds,
+        band=band_rows(n_leds, h, w), written_shape=(n_turn, n_cam), small=small,
+        valid_fraction_shape=(n_turn, n_cam, n_illum))
 
 
 _workspace = threading.local()
@@ -239,7 +219,7 @@ _workspace = threading.local()
 
 def reused_buffer(name: str, shape: tuple[int, ...], dtype: Any) -> np.ndarray:
     """A per-thread array that outlives the task: first-touch of fresh memory costs about a fifth
-    of a view's work here (DESIGN §5), so a worker's views share their large buffers."""
+    of a view's work here (docs/benchmarks.md), so a worker's views share their large buffers."""
     buffers = _workspace.__dict__.setdefault("buffers", {})
     size, dtype = int(np.prod(shape)), np.dtype(dtype)
     flat = buffers.get(name)
@@ -248,15 +228,18 @@ def reused_buffer(name: str, shape: tuple[int, ...], dtype: Any) -> np.ndarray:
     return flat[:size].reshape(shape)
 
 
-def ingest_view(capture_path: str, out_path: str, settings: IngestSettings, t: int, c: int,
+def ingest_view(capture_path: str, meta: CaptureMetadata, out_path: str, settings: IngestSettings, t: int, c: int,
                 calibration: Calibration | None = None) -> tuple[int, int]:
-    """Process one view of the capture and write its chunk of the BTF store."""
-    capture = open_capture_once(capture_path)
-    meta, sensor = capture.meta, capture.meta.sensor
+    """Process one view of the capture and write its chunk of the BTF store.
+
+    ``meta`` is the capture's metadata as the driver validated it (:meth:`CaptureStore.reopen`).
+    """
+    capture = CaptureStore.reopen(capture_path, meta)
+    sensor = meta.sensor
     window = view_window(capture.homography[t, c], capture.roi_shape, tuple(meta.texture_shape),
                          meta.sample_size_m, settings)
     if capture.is_plan_capture and (capture.exposure_time[t, c] == 0).any():
-        return _ingest_plan_view(capture, capture_path, out_path, settings, t, c, calibration, window)
+        return _ingest_plan_view(capture, out_path, settings, t, c, calibration, window)
     raw = capture.read_raw(t, c, window, out=reused_buffer(
         "raw", (capture.n_illum, capture.n_exp, window[0].stop - window[0].start,
                 window[1].stop - window[1].start), capture.raw.dtype))
@@ -270,20 +253,25 @@ def ingest_view(capture_path: str, out_path: str, settings: IngestSettings, t: i
         led_gain=None if calibration is None else calibration.led_gain,
         colour_matrix=None if calibration is None else calibration.colour_matrix, window=window,
         out=reused_buffer("rectified", (capture.n_illum, *meta.texture_shape, 3), np.float32))
-    group = zarr.open_group(out_path, mode="r+", zarr_format=3)
-    n_leds = capture.n_leds
-    row = (t * capture.n_cam + c) * n_leds
-    group["btf"][row:row + n_leds] = textures                 # exactly one chunk
-    group["valid_fraction"][t, c] = valid
-    group["written"][t, c] = 1                                 # marker after the data
+    _write_view(out_path, capture, t, c, textures, valid)
     return t, c
 
 
-def _ingest_plan_view(capture: CaptureStore, capture_path: str, out_path: str, settings: IngestSettings, t: int,
-                      c: int, calibration: Calibration | None, window: tuple) -> tuple[int, int]:
+def _write_view(out_path: str, capture: CaptureStore, t: int, c: int, textures: np.ndarray,
+                valid: np.ndarray) -> None:
+    """A view's rows of ``btf`` (exactly one chunk of rows), its valid fractions, then its marker."""
+    group = BtfStore(out_path, "r+").group
+    n_leds = capture.n_leds
+    row = (t * capture.n_cam + c) * n_leds
+    group["btf"][row:row + n_leds] = textures
+    group["valid_fraction"][t, c] = valid
+    group["written"][t, c] = 1                                 # marker after the data
+
+
+def _ingest_plan_view(capture: CaptureStore, out_path: str, settings: IngestSettings, t: int, c: int,
+                      calibration: Calibration | None, window: tuple) -> tuple[int, int]:
     """A view of a full plan capture whose brackets differ in length: merged per length, then demultiplexed."""
     from btfcore.capture.radiometric import apply_colour_matrix, apply_led_calibration
-    from tasks.measurement import process_brackets
 
     illum = np.arange(capture.n_illum)
     frames = capture.read_raw(t, c, window, illum)
@@ -294,49 +282,36 @@ def _ingest_plan_view(capture: CaptureStore, capture_path: str, out_path: str, s
         apply_led_calibration(textures, calibration.led_gain, out=textures)
     if calibration is not None and calibration.colour_matrix is not None:
         textures = apply_colour_matrix(textures, calibration.colour_matrix)
-    group = zarr.open_group(out_path, mode="r+", zarr_format=3)
-    row = (t * capture.n_cam + c) * capture.n_leds
-    group["btf"][row:row + capture.n_leds] = textures
-    group["valid_fraction"][t, c] = valid
-    group["written"][t, c] = 1
+    _write_view(out_path, capture, t, c, textures, valid)
     return t, c
 
 
-def ingest_capture(capture_path: str | os.PathLike, out_path: str | os.PathLike, client: Any, *,
+def ingest_capture(capture_path: str | os.PathLike | CaptureStore, out_path: str | os.PathLike, client: Any, *,
                    settings: IngestSettings = IngestSettings(), overwrite: bool = False,
                    calibration: Calibration | None = None,
                    progress: Callable[[int, int], None] | None = None, commit: bool = True) -> dict[str, Any]:
     """Ingest a capture store into a BTF store on a Dask cluster; resumes unfinished runs.
 
+    The capture is opened and validated once, here (or by the caller, who passes the
+    :class:`CaptureStore`); the view tasks get its path and validated metadata.
     With ``overwrite``, the store at ``out_path`` (another ingest's, or this one's: it is recomputed) is
     replaced only after the new one is complete: the views go to :func:`staging_path` (``"staged": True`` in the result), which
     :func:`commit_staged` then renames over ``out_path``, here when ``commit`` or else by the caller
     once it has checked the staged store (``btf ingest`` checks its valid fractions first). A staging
     store of this ingest is resumed, with or without ``overwrite``.
     """
-    from distributed import as_completed
-
     start = time.perf_counter()
     capture, (target, staged) = check_ingest(capture_path, out_path, settings=settings, overwrite=overwrite,
                                              calibration=calibration)
-    from tasks.measurement import ingest_measurement, needs_measurement_store
     if needs_measurement_store(capture):
-        return ingest_measurement(capture_path, out_path, client, settings=settings, overwrite=overwrite,
+        return ingest_measurement(capture, out_path, client, settings=settings, overwrite=overwrite,
                                   progress=progress, commit=commit)
-    group = create_btf_store(target, capture, settings, overwrite=staged, calibration=calibration)
-    written = group["written"][...]
-    pending = [] if group.attrs.get("complete") else [(t, c) for t, c in np.ndindex(written.shape)
-                                                       if not written[t, c]]
-    futures = [client.submit(ingest_view, str(capture_path), str(target), settings, t, c, calibration, pure=False)
-               for t, c in pending]
-    for done, future in enumerate(as_completed(futures), 1):
-        future.result()
-        if progress is not None:
-            progress(done, len(futures))
-    if not group["written"][...].all():
-        raise RuntimeError(f"{target}: some views were not written; re-run to resume")
-    if not group.attrs.get("complete"):
-        group.attrs["complete"] = True
+    store = create_ingest_store(target, capture, settings, overwrite=staged, calibration=calibration)
+    written = store.written
+    pending = [] if store.complete else [(t, c) for t, c in np.ndindex(written.shape) if not written[t, c]]
+    run_all(client, ingest_view, [(capture.path, capture.meta, str(target), settings, t, c, calibration)
+                                  for t, c in pending], progress)
+    store.mark_complete("views")
     if staged and commit:
         commit_staged(out_path)
     result = {"views_processed": len(pending), "views_skipped": written.size - len(pending), "staged": staged}
@@ -351,17 +326,19 @@ def _relative_errors(est: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
     """Relative L2 error on linear RGB and on ``log(Y + eps)``, eps = 1e-3 of the truth's mean Y
     (noise below 0.1 % of the mean is not log-amplified)."""
     rel_linear = float(np.linalg.norm(est - truth) / np.linalg.norm(truth))
-    luma = np.array([0.2126, 0.7152, 0.0722])
+    luma = REC709_LUMA
     y_est, y_true = est @ luma, truth @ luma
     eps = 1e-3 * float(y_true.mean())
     log_est, log_true = np.log(np.maximum(y_est, 0.0) + eps), np.log(y_true + eps)
     return rel_linear, float(np.linalg.norm(log_est - log_true) / np.linalg.norm(log_true))
 
 
-def btf_error_against_truth(btf_path: str | os.PathLike, capture_path: str | os.PathLike) -> dict[str, float]:
+def btf_error_against_truth(btf_path: str | os.PathLike,
+                            capture: str | os.PathLike | CaptureStore) -> dict[str, float]:
     """Relative L2 errors of an ingested BTF against a simulated capture's ground truth,
     on linear RGB and on log luminance (``log(Y + eps)``, eps = 1e-3 mean Y).
 
+    ``capture``: the simulated capture's path, or the store already opened.
     ``relative_l2_*``: each (light, channel) of the BTF is first brought to the
     truth's scale by the least-squares factor over all views of that light
     (what a white-standard calibration measures), so that the figures
@@ -369,16 +346,14 @@ def btf_error_against_truth(btf_path: str | os.PathLike, capture_path: str | os.
     (only for a store ingested with ``--white``): the BTF as it is, which
     measures the chain and the white-standard calibration together.
     """
-    group = zarr.open_group(str(btf_path), mode="r", zarr_format=3)
-    if group.attrs.get("schema") == "btf-measurement":
-        from tasks.measurement import measurement_error_against_truth
-        return measurement_error_against_truth(btf_path, capture_path)
-    if group.attrs.get("schema") != SCHEMA_NAME or "resampled_from" in group.attrs:
-        raise ValueError(f"{btf_path}: not the output of `btf ingest` (schema {group.attrs.get('schema')!r}"
-                         f"{', resampled' if 'resampled_from' in group.attrs else ''}); the truth is sampled like "
-                         "the capture, so evaluate the ingested store, not a resampled one")
-    capture = open_capture_store(capture_path)
-    btf = np.asarray(group["btf"][...], dtype=np.float64)
+    if (store_attrs(btf_path) or {}).get("schema") == MEASUREMENT_SCHEMA:
+        return measurement_error_against_truth(btf_path, capture)
+    store = open_btf_store(btf_path, require_complete=False, produced_by="`btf ingest`",
+                           ingested_only="the truth is sampled like the capture, so evaluate the ingested "
+                                         "store, not a resampled one")
+    if not isinstance(capture, CaptureStore):
+        capture = open_capture_store(capture)
+    btf = np.asarray(store.btf[...], dtype=np.float64)
     truth = np.asarray(capture.truth["btf"][...], dtype=np.float64)
     n_leds = capture.n_leds
     b = btf.reshape(-1, n_leds, *btf.shape[1:])
@@ -386,7 +361,7 @@ def btf_error_against_truth(btf_path: str | os.PathLike, capture_path: str | os.
     scale = (b * g).sum(axis=(0, 2, 3)) / np.maximum((b * b).sum(axis=(0, 2, 3)), 1e-300)   # (n_leds, 3)
     rel_linear, rel_log = _relative_errors(b * scale[None, :, None, None, :], g)
     errors = {"relative_l2_linear": rel_linear, "relative_l2_log_y": rel_log}
-    if (group.attrs.get("radiometric") or {}).get("white_standard"):
+    if (store.attrs.get("radiometric") or {}).get("white_standard"):
         rel_linear, rel_log = _relative_errors(b, g)
         errors.update({"calibrated_relative_l2_linear": rel_linear, "calibrated_relative_l2_log_y": rel_log})
     return errors

@@ -29,7 +29,8 @@ from typing import Any, Callable
 import numpy as np
 
 from btfcore.dome import Device
-from tasks.stores import CaptureMetadata, CaptureStore, create_capture_store
+from tasks.compute import run_all
+from tasks.stores import CaptureMetadata, CaptureStore, create_capture_store, open_capture_store
 
 MANIFEST_COLUMNS = ("file", "turntable", "camera", "illumination", "exposure")
 _INDEX_COLUMNS = MANIFEST_COLUMNS[1:]
@@ -333,11 +334,10 @@ def raw_import_metadata(plan: RawImportPlan, device: Device, provenance: dict[st
     return import_metadata(plan, device, provenance)
 
 
-def import_view(store_path: str, plan: RawImportPlan, t: int, c: int) -> tuple[int, int]:
-    """Read one view's brackets from their files and write them (owning whole chunks)."""
-    from tasks.stores import open_capture_store
-
-    store = open_capture_store(store_path, mode="r+", require_complete=False)
+def import_view(store_path: str, meta: CaptureMetadata, plan: RawImportPlan, t: int, c: int) -> tuple[int, int]:
+    """Read one view's brackets from their files and write them (owning whole chunks) into the store the
+    driver created with ``meta`` (:meth:`CaptureStore.reopen`)."""
+    store = CaptureStore.reopen(store_path, meta, "r+")
     _, _, n_illum, n_exp = plan.shape
     frames = np.stack([np.stack([read_raw_frame(plan.files[(t, c, i, e)]) for e in range(n_exp)])
                        for i in range(n_illum)])
@@ -352,8 +352,6 @@ def import_raw(plan: RawImportPlan, device: Device, out: str | os.PathLike, clie
     With a ``distributed.Client`` the views run on the cluster; without, here.
     A rerun resumes with the views not yet written.
     """
-    from tasks.stores import open_capture_store
-
     meta = raw_import_metadata(plan, device, provenance)
     store = create_capture_store(out, meta, overwrite=overwrite)
     if plan.darks:
@@ -362,17 +360,11 @@ def import_raw(plan: RawImportPlan, device: Device, out: str | os.PathLike, clie
     else:
         level = np.full((plan.shape[1], 1, *plan.frame_shape), meta.black_level, dtype=np.uint16)
         store.write_dark_frames(level)
-    pending = store.pending_views()
+    args = [(str(out), store.meta, plan, t, c) for t, c in store.pending_views()]
     if client is None:
-        for t, c in pending:
-            import_view(str(out), plan, t, c)
+        for a in args:
+            import_view(*a)
     else:
-        from distributed import wait
-
-        futures = [client.submit(import_view, str(out), plan, t, c, pure=False) for t, c in pending]
-        wait(futures)
-        for future in futures:
-            future.result()
-    store = open_capture_store(out, mode="r+", require_complete=False)
+        run_all(client, import_view, args)
     store.mark_complete()
     return open_capture_store(out)

@@ -103,8 +103,8 @@ def checksummed(compressors: Any = None) -> list[Any]:
 def create_array(group: zarr.Group, name: str, *, compressors: Any = None, **kwargs: Any) -> zarr.Array:
     """``group.create_array(name, ...)`` with a CRC32C checksum on every chunk.
 
-    The one place where the pipeline creates arrays (DESIGN: one home per
-    contract); every keyword is passed on to :meth:`zarr.Group.create_array`.
+    The one place where the pipeline creates arrays (docs/architecture.md, "Storage contract": one home
+    per contract); every keyword is passed on to :meth:`zarr.Group.create_array`.
 
     Parameters
     ----------

@@ -1,4 +1,4 @@
-"""The model database (DESIGN stage 8): per-material bases, class and global merges, ABTF bases.
+"""The model database (stage 8): per-material bases, class and global merges, ABTF bases.
 
 `btf build-db DB --out MODEL` reads the ingested BTF stores of a database
 (``btf-texture``, one per material) and writes one Zarr v3 group,
@@ -48,6 +48,7 @@ from btfcore.model.als import als_basis
 from btfcore.model.colour import to_log_yuv
 from btfcore.model.eigenspace_merging import merge_eigenspaces
 from btfcore.model.truncated_svd import truncated_svd
+from tasks.compute import run_all
 from tasks.integrity import create_array
 from tasks.staging import begin_store, finish_store
 from tasks.stores import to_json_attr
@@ -617,19 +618,6 @@ def with_k(settings: ModelSettings, **k: int | None) -> ModelSettings:
 # --------------------------------------------------------------------------- the whole build
 
 
-def _run_all(client: Any, fn: Callable[..., Any], args: Sequence[tuple], progress: Callable[[int, int], None] | None
-             ) -> list[Any]:
-    """``fn(*a)`` for every ``a`` on the cluster, results in order; ``progress(done, total)`` as they finish."""
-    from distributed import as_completed
-
-    futures = [client.submit(fn, *a, pure=False) for a in args]
-    for done, future in enumerate(as_completed(futures), 1):
-        future.result()
-        if progress is not None:
-            progress(done, len(futures))
-    return [f.result() for f in futures]
-
-
 def build_database(db: str | os.PathLike, out_dir: str | os.PathLike, client: Any, *,
                    settings: ModelSettings = ModelSettings(), class_map: dict[str, str] | None = None,
                    ks: Sequence[int] | None = None,
@@ -645,11 +633,11 @@ def build_database(db: str | os.PathLike, out_dir: str | os.PathLike, client: An
     out.mkdir(parents=True, exist_ok=True)
     model_path = str(out / "model.zarr")
     group = open_model_store(model_path, materials)
-    fits = _run_all(client, fit_material, [(model_path, m, settings) for m in materials],
-                    progress and progress("material bases"))
+    fits = run_all(client, fit_material, [(model_path, m, settings) for m in materials],
+                   progress and progress("material bases"))
     merged = merge_bases(group, materials, settings)
-    loo = _run_all(client, leave_one_out, [(model_path, materials, m.material_id, settings) for m in materials],
-                   progress and progress("leave-one-out"))
+    loo = run_all(client, leave_one_out, [(model_path, materials, m.material_id, settings) for m in materials],
+                  progress and progress("leave-one-out"))
     k_max = min(len(r["class_basis"]) for r in loo)
     ks = [k for k in (ks or (1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024, 2048)) if k <= k_max]
     group.attrs.update(to_json_attr({"materials": {m.material_id: {"class": m.cls, "btf": m.path,

@@ -30,7 +30,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import zarr
 
 from btfcore.capture.radiometric import (
     as_colour_matrix,
@@ -39,6 +38,7 @@ from btfcore.capture.radiometric import (
     white_standard_statistics,
     white_texture_statistics,
 )
+from tasks.stores.btf import BtfStore, open_btf_store
 
 WHITE_ALBEDO = 0.99
 
@@ -73,22 +73,19 @@ class Calibration:
         return h.hexdigest()[:16]
 
 
-def _open_white(path: str | os.PathLike) -> zarr.Group:
+def _open_white(path: str | os.PathLike) -> BtfStore:
     if not Path(path).exists():
         raise FileNotFoundError(f"{path}: no white-standard BTF store there; ingest the white-standard capture "
                                 "first (btf ingest WHITE_CAPTURE --out WHITE_BTF)")
-    group = zarr.open_group(str(path), mode="r", zarr_format=3)
-    attrs = dict(group.attrs)
-    if attrs.get("schema") != "btf-texture" or "resampled_from" in attrs:
-        raise ValueError(f"{path}: not the output of `btf ingest` (schema {attrs.get('schema')!r}"
-                         f"{', resampled' if 'resampled_from' in attrs else ''}); give the ingested white standard")
-    if not attrs.get("complete"):
+    store = open_btf_store(path, require_complete=False, produced_by="`btf ingest`",
+                           ingested_only="give the ingested white standard")
+    if not store.complete:
         raise ValueError(f"{path}: the white standard's ingest is unfinished (attribute complete = false); "
                          "run `btf ingest` on it again to finish it")
-    if attrs.get("radiometric"):
+    if store.attrs.get("radiometric"):
         raise ValueError(f"{path}: this BTF store is already radiometrically corrected; calibrate from an "
                          "uncorrected ingest of the white standard (without --white)")
-    return group
+    return store
 
 
 def led_gains_from_white(white_path: str | os.PathLike, albedo: float = WHITE_ALBEDO) -> tuple[np.ndarray, dict]:
@@ -121,9 +118,9 @@ def led_gains_from_white(white_path: str | os.PathLike, albedo: float = WHITE_AL
         tolerance (the message names the store, the statistic, its value and
         the tolerance).
     """
-    group = _open_white(white_path)
-    n_turn, n_cam, n_leds = group.attrs["turntable_cameras_leds"]
-    btf, light_dir = group["btf"], group["light_dir"][...]
+    white = _open_white(white_path)
+    n_turn, n_cam, n_leds = white.attrs["turntable_cameras_leds"]
+    btf, light_dir = white.btf, white.light_dir
     n_views = n_turn * n_cam
     per_view = np.empty((n_views, n_leds, 3))
     spread, chroma_spread = np.empty((n_views, n_leds)), np.empty((n_views, n_leds))
@@ -141,7 +138,7 @@ def led_gains_from_white(white_path: str | os.PathLike, albedo: float = WHITE_AL
     check_white_standard(white_path, stats)
     gain = np.median(per_view, axis=0)
     gain_spread = float(np.max(np.abs(per_view - gain) / gain))
-    info = {"white_standard": str(white_path), "white_ingest_hash": group.attrs.get("ingest_hash"),
+    info = {"white_standard": str(white_path), "white_ingest_hash": white.attrs.get("ingest_hash"),
             "albedo": float(albedo), "views": int(n_views), "max_relative_spread_over_views": gain_spread,
             "white_check": {name: round(value, 6) for name, value in stats.items()}}
     return gain, info

@@ -68,10 +68,12 @@ from btfcore.acquisition.reconstruct import (
     solve_operator,
     texture_variance,
 )
-from tasks.integrity import create_array
-from tasks.staging import (begin_store, commit_staged, finish_interrupted_commit, finish_store, staging_path,
-                           store_attrs)
-from tasks.stores import to_json_attr
+from tasks.compute import run_all
+from tasks.staging import commit_staged, finish_interrupted_commit, staging_path, store_attrs
+from tasks.stores.btf import LV_ORDER, SCHEMA_NAME, SCHEMA_VERSION, BtfStore, create_btf_store, open_btf_store
+from tasks.stores.btf import band_rows as btf_band_rows
+from tasks.stores.measurement import SCHEMA_NAME as MEASUREMENT_SCHEMA
+from tasks.stores.measurement import open_measurement_store, read_G
 
 __all__ = ["RECONSTRUCT_BASES", "ReconstructSettings", "build_operators", "check_inputs", "open_model",
            "reconstruct_band", "reconstruct_chunk", "reconstruct_store", "read_input"]
@@ -143,24 +145,24 @@ def open_model(model: str | os.PathLike) -> zarr.Group:
 
 
 def read_input(path: str | os.PathLike) -> tuple[zarr.Group, str]:
-    """Open the input of a reconstruction: ``(group, kind)`` with kind ``"measurement"`` or ``"btf"``.
+    """Open the input of a reconstruction: ``(group, kind)`` with kind ``"measurement"`` or ``"btf"``
+    (:func:`tasks.stores.measurement.open_measurement_store`, :func:`tasks.stores.btf.open_btf_store`).
 
     Raises
     ------
     ValueError
         Not a finished measurement or BTF store.
     """
-    try:
-        group = zarr.open_group(str(path), mode="r", zarr_format=3)
-    except Exception:  # noqa: BLE001
-        raise ValueError(f"{path}: not a readable Zarr store; give the output of `btf ingest`") from None
-    schema = group.attrs.get("schema")
-    if schema not in ("btf-measurement", "btf-texture"):
-        raise ValueError(f"{path}: schema {schema!r}; give a measurement store (`btf ingest` of a plan capture) or "
-                         "a BTF store (btf-texture)")
-    if not group.attrs.get("complete"):
-        raise ValueError(f"{path}: the store is unfinished (complete = false); run the command that writes it again")
-    return group, ("measurement" if schema == "btf-measurement" else "btf")
+    attrs = store_attrs(path)
+    if not attrs:
+        raise ValueError(f"{path}: not a readable Zarr store; give the output of `btf ingest`")
+    schema = attrs.get("schema")
+    if schema == MEASUREMENT_SCHEMA:
+        return open_measurement_store(path), "measurement"
+    if schema == SCHEMA_NAME:
+        return open_btf_store(path, produced_by="`btf ingest`, `btf resample` or `btf reconstruct`").group, "btf"
+    raise ValueError(f"{path}: schema {schema!r}; give a measurement store (`btf ingest` of a plan capture) or "
+                     f"a BTF store ({SCHEMA_NAME})")
 
 
 def _check_sampling(model: zarr.Group, data: zarr.Group, data_path: Any) -> None:
@@ -232,16 +234,12 @@ def _basis(model: zarr.Group, cls: str, name: str, k: int | None, model_path: An
 
 def _measurement_G(data: zarr.Group, kind: str) -> sparse.csr_matrix | None:
     """``G`` of a measurement store, read block of rows by block into a sparse matrix (dense, a full S-matrix
-    capture at the thesis' scale would take 5.5 GB); ``None`` for a BTF store (the identity)."""
-    from tasks.measurement import read_G
-
+    capture at bonn-dome2's scale would take 5.5 GB); ``None`` for a BTF store (the identity)."""
     return None if kind == "btf" else read_G(data)
 
 
 def _bands(h: int, n_rows: int, w: int) -> list[tuple[int, int]]:
-    from tasks.ingest import band_rows
-
-    step = band_rows(n_rows, h, w)
+    step = btf_band_rows(n_rows, h, w)
     return [(r, min(r + step, h)) for r in range(0, h, step)]
 
 
@@ -416,7 +414,7 @@ def reconstruct_band(in_path: str, out_path: str, ops: dict[str, SolveOperator],
     if not np.isfinite(out).all():
         raise ValueError(f"{in_path}: the reconstruction of texture rows {r0}:{r1} is not finite (a log basis "
                          "extrapolated beyond the float range); use --method tikhonov or --basis als")
-    dst = zarr.open_group(out_path, mode="r+", zarr_format=3)
+    dst = BtfStore(out_path, "r+").group
     dst["btf"][:, r0:r1] = out
     dst["written"][band] = 1
     return band
@@ -493,25 +491,20 @@ def reconstruct_hash(data: zarr.Group, model: zarr.Group, settings: ReconstructS
         except KeyError:
             keys[n] = None
     payload = {"input": data.attrs.get("ingest_hash") or data.attrs.get("reconstruct_hash"), "bases": keys,
-               "rows_id": model.attrs.get("rows_id"), "settings": asdict(settings), "schema": "btf-texture/1.0",
+               "rows_id": model.attrs.get("rows_id"), "settings": asdict(settings), "schema": f"{SCHEMA_NAME}/{SCHEMA_VERSION}",
                "band": band, "calibration": None if calibration is None else calibration.key()}
     return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:16]
 
 
 def _create_output(path: Path, data: zarr.Group, key: str, attrs: dict[str, Any], n_bands: int, band: int
-                   ) -> zarr.Group:
+                   ) -> BtfStore:
+    """The output BTF store: the input's rows and directions, one resume marker per band of texture rows."""
     h, w = data.attrs["texture_shape"]
-    n_turn, n_cam, n_leds = data.attrs["turntable_cameras_leds"]
-    n_lv = n_turn * n_cam * n_leds
-    group = begin_store(path)
-    create_array(group, "btf", shape=(n_lv, h, w, 3), chunks=(n_leds, band, w, 3), dtype="float32", fill_value=0.0,
-                       compressors=None, dimension_names=["lv", "tex_row", "tex_col", "channel"])
-    for name in ("light_dir", "view_dir", "lv_index"):
-        v = data[name][...]
-        create_array(group, name, shape=v.shape, dtype=v.dtype, chunks=v.shape, compressors=None)[...] = v
-    create_array(group, "written", shape=(n_bands,), chunks=(1,), dtype="uint8", fill_value=0, compressors=None)
-    group.attrs.put(to_json_attr({**attrs, "reconstruct_hash": key, "ingest_hash": key, "complete": False}))
-    return finish_store(path, group)
+    n_leds = data.attrs["turntable_cameras_leds"][2]
+    return create_btf_store(path, {**attrs, "reconstruct_hash": key, "ingest_hash": key},
+                            light_dir=data["light_dir"][...], view_dir=data["view_dir"][...],
+                            lv_index=data["lv_index"][...], texture_shape=(h, w), rows_per_chunk=n_leds, band=band,
+                            written_shape=(n_bands,))
 
 
 def reconstruct_store(in_path: str | os.PathLike, model_path: str | os.PathLike, out_path: str | os.PathLike,
@@ -536,7 +529,7 @@ def reconstruct_store(in_path: str | os.PathLike, model_path: str | os.PathLike,
         Replace another store at ``out_path`` (only once the new one is complete).
     band_rows : int, optional
         Texture rows per band (a Dask task and a chunk of the output); default
-        one BTF-store chunk, :func:`tasks.ingest.band_rows`.
+        one BTF-store chunk, :func:`tasks.stores.btf.band_rows`.
     calibration : tasks.radiometric.Calibration, optional
         Radiometric correction of the (uncorrected) measurement, for a model
         of corrected BTFs (:class:`RowCorrection`).
@@ -556,8 +549,6 @@ def reconstruct_store(in_path: str | os.PathLike, model_path: str | os.PathLike,
     FileExistsError
         Another store at ``out_path`` without ``overwrite``.
     """
-    from distributed import as_completed
-
     start = time.perf_counter()
     data, kind = read_input(in_path)
     model = open_model(model_path)
@@ -587,7 +578,7 @@ def reconstruct_store(in_path: str | os.PathLike, model_path: str | os.PathLike,
     staging = staging_path(out)
     attrs_stage = store_attrs(staging)
     if attrs_stage is not None and attrs_stage.get("reconstruct_hash") == key:
-        group = zarr.open_group(str(staging), mode="r+", zarr_format=3)   # a killed run: resume its bands
+        store = BtfStore(staging, "r+")                                  # a killed run: resume its bands
     else:
         if attrs_stage is not None:
             shutil.rmtree(staging)
@@ -595,8 +586,7 @@ def reconstruct_store(in_path: str | os.PathLike, model_path: str | os.PathLike,
 
         units = CALIBRATED_UNITS if calibration is not None and calibration.led_gain is not None else \
             data.attrs.get("units")
-        attrs = {"schema": "btf-texture", "schema_version": "1.0", "units": units,
-                 "lv_order": ["turntable", "camera", "light"], "texture_shape": [h, w],
+        attrs = {"units": units, "lv_order": LV_ORDER,
                  "turntable_cameras_leds": [n_turn, n_cam, n_leds], "material": data.attrs.get("material"),
                  "source": str(in_path), "settings": data.attrs.get("settings"),
                  "radiometric": None if calibration is None else calibration.info,
@@ -605,19 +595,13 @@ def reconstruct_store(in_path: str | os.PathLike, model_path: str | os.PathLike,
                                         "n_meas": int(G.shape[0]) if G is not None else n_lv,
                                         "condition": condition if np.isfinite(condition) else None,
                                         "plan": data.attrs.get("plan")}}
-        group = _create_output(staging, data, key, attrs, len(bands), band)
-    written = group["written"][...]
+        store = _create_output(staging, data, key, attrs, len(bands), band)
+    written = store.written
     pending = np.flatnonzero(written == 0).tolist()
     ops_f = client.scatter(ops, broadcast=True)                      # sent once to each worker, not per band
-    futures = [client.submit(reconstruct_band, str(in_path), str(staging), ops_f, b, bands, correction, pure=False)
-               for b in pending]
-    for done, future in enumerate(as_completed(futures), 1):
-        future.result()
-        if progress is not None:
-            progress(done, len(futures))
-    if not group["written"][...].all():
-        raise RuntimeError(f"{staging}: some bands were not written; re-run to resume")
-    group.attrs["complete"] = True
+    run_all(client, reconstruct_band, [(str(in_path), str(staging), ops_f, b, bands, correction) for b in pending],
+            progress)
+    store.mark_complete("bands")
     commit_staged(out, "reconstruct")
     return {"out": str(out), "bands_processed": len(pending), "bands_skipped": int(written.size - len(pending)),
             "n_meas": int(G.shape[0]) if G is not None else n_lv, "n_lv": n_lv,

@@ -15,7 +15,6 @@ from typing import Literal
 
 import cv2
 import numpy as np
-import zarr
 
 from btfcore.render.btf_render import (
     BTFLookup,
@@ -27,8 +26,9 @@ from btfcore.render.btf_render import (
     surface_geometry,
     to_srgb8,
 )
+from tasks.stores.btf import open_btf_store
 
-__all__ = ["Rendering", "load_env_map", "open_btf_store", "render_store", "write_png"]
+__all__ = ["Rendering", "load_env_map", "read_btf_store", "render_store", "write_png"]
 
 
 @dataclass(frozen=True)
@@ -104,8 +104,9 @@ def load_env_map(path: str | os.PathLike) -> np.ndarray:
     return np.maximum(env, 0.0)
 
 
-def open_btf_store(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
-    """Read a finished ``btf-texture`` store (ingested or resampled) into memory.
+def read_btf_store(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+    """Read a finished ``btf-texture`` store (ingested, resampled or reconstructed) into memory
+    (:func:`tasks.stores.btf.open_btf_store` checks it first).
 
     Returns
     -------
@@ -126,29 +127,8 @@ def open_btf_store(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.
     The whole BTF is read: ``n_lv * h * w * 12`` bytes (1.1 GB for a
     UBO2014-sampled 64 x 64 store).
     """
-    p = Path(path)
-    if not p.exists():
-        raise FileNotFoundError(f"{p} does not exist; give a BTF store written by `btf ingest` or `btf resample`")
-    try:
-        group = zarr.open_group(str(p), mode="r", zarr_format=3)
-    except (FileNotFoundError, ValueError, TypeError) as exc:
-        raise ValueError(f"{p} is not a Zarr v3 group ({exc}); give a BTF store") from None
-    attrs = dict(group.attrs)
-    if attrs.get("schema") != "btf-texture":
-        raise ValueError(f"{p} is not a BTF store (schema {attrs.get('schema')!r}, expected 'btf-texture'); "
-                         "give the output of `btf ingest` or `btf resample`")
-    if not attrs.get("complete"):
-        raise ValueError(f"{p} is an unfinished BTF store (attribute complete is false); finish the "
-                         "`btf ingest` or `btf resample` that writes it first")
-    missing = [name for name in ("btf", "light_dir", "view_dir") if name not in group]
-    if missing:
-        raise ValueError(f"{p}: arrays {missing} are missing; rebuild the store")
-    btf = group["btf"]
-    light, view = np.asarray(group["light_dir"][...], np.float64), np.asarray(group["view_dir"][...], np.float64)
-    if btf.ndim != 4 or btf.shape[3] != 3 or light.shape != (btf.shape[0], 3) or view.shape != light.shape:
-        raise ValueError(f"{p}: btf {btf.shape}, light_dir {light.shape} and view_dir {view.shape} do not fit "
-                         "((n_lv, h, w, 3), (n_lv, 3), (n_lv, 3)); rebuild the store")
-    return np.asarray(btf[...], dtype=np.float32), light, view, attrs
+    store = open_btf_store(path, produced_by="`btf ingest` or `btf resample`")
+    return np.asarray(store.btf[...], dtype=np.float32), store.light_dir, store.view_dir, store.attrs
 
 
 def write_png(path: str | os.PathLike, srgb: np.ndarray) -> Path:
@@ -228,7 +208,7 @@ def render_store(
     -------
     rendering : Rendering
     """
-    btf, light_dir, view_dir, _ = open_btf_store(btf_store_path)
+    btf, light_dir, view_dir, _ = read_btf_store(btf_store_path)
     env_map = None
     if env is not None:
         env_map = load_env_map(env) if isinstance(env, (str, os.PathLike)) else np.asarray(env, np.float32)

@@ -17,6 +17,7 @@ import numpy as np
 
 from btfcore.simulate.camera import homography_sample_mask
 from btfcore.dome import Device
+from btfcore.model.colour import REC709_LUMA
 from btfcore.simulate.sensor import WELL_EXPOSED
 from btfcore.render.tonemap import srgb_encode, tonemap
 from tasks.stores import CaptureStore, open_capture_store
@@ -57,7 +58,7 @@ def save_png(path: Path, rgb: np.ndarray, scale: int | tuple[int, int] = 1) -> s
 
 
 def _luminance(rgb: np.ndarray) -> np.ndarray:
-    return rgb @ np.array([0.2126, 0.7152, 0.0722], dtype=rgb.dtype)
+    return rgb @ REC709_LUMA.astype(rgb.dtype)
 
 
 def material_statistics(store: CaptureStore) -> dict[str, Any]:
@@ -294,23 +295,9 @@ def write_html(path: Path, title: str, summary: dict[str, Any], sections: list[d
     return path
 
 
-def simulation_report(out_dir: str | Path, device: Device, store_paths: Sequence[str],
-                      run: dict[str, Any]) -> dict[str, Any]:
-    """Write ``report.json`` and ``report.html`` (with PNGs) for a simulated database.
-
-    Returns the report dictionary written to ``report.json``.
-    """
-    out = Path(out_dir)
-    fig_dir = out / "report_files"
-    fig_dir.mkdir(parents=True, exist_ok=True)
-    stores = [open_capture_store(p, mode="r") for p in store_paths]
-    materials = []
-    for path, store in zip(store_paths, stores):
-        stats = material_statistics(store)
-        material = store.group["truth"].attrs["material"]
-        materials.append({"store": str(path), "material_id": material["material_id"],
-                          "class": material["class_name"], "valid": True, **stats})
-
+def _capture_sections(device: Device, store_paths: Sequence[str], stores: Sequence[CaptureStore],
+                      fig_dir: Path) -> list[dict[str, Any]]:
+    """The report's figures of the simulated captures: the dome, raw frames, ground-truth textures, ABRDFs."""
     sections: list[dict[str, Any]] = [{
         "title": "Dome",
         "text": f"{device.n_cam} cameras, {device.n_leds} lights, {device.n_turn} turntable positions: "
@@ -344,14 +331,25 @@ def simulation_report(out_dir: str | Path, device: Device, store_paths: Sequence
                            "caption": f"{stem}: texel {tuple(item['texel'])}, {item['shape'][0]} views x {item['shape'][1]} lights"})
     sections.append({"title": "Ground-truth textures", "figures": tex_figs})
     sections.append({"title": "ABRDFs (thesis Fig. 1.3 layout: x = light, y = view)", "figures": abrdf_figs})
-    sections.append({
+    return sections
+
+
+def _materials_section(materials: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """The table of the simulated materials: dynamic range, exposure times, well-exposed fraction."""
+    return {
         "title": "Materials",
         "table": [["material", "class", "dynamic range (max/min)", "p99.9/p0.1", "exposures (s)",
                    "well-exposed (min over views)"]] + [
             [m["material_id"], m["class"], f"{m['dynamic_range']:.3g}", f"{m['dynamic_range_p99.9_over_p0.1']:.3g}",
              f"{m['exposure_time_s']['min']:.3g} - {m['exposure_time_s']['max']:.3g}",
              f"{m['well_exposed_fraction_min']:.4f}"] for m in materials],
-    })
+    }
+
+
+def _ingest_sections(run: dict[str, Any], store_paths: Sequence[str], stores: Sequence[CaptureStore],
+                     fig_dir: Path) -> list[dict[str, Any]]:
+    """The ingested BTFs beside the ground truth and their errors (``btf demo``; none for ``btf simulate``)."""
+    sections: list[dict[str, Any]] = []
     ingest_figs = []
     for path, store in zip(store_paths, stores):
         btf_path = (run.get("ingest_btf") or {}).get(Path(path).stem)
@@ -382,29 +380,60 @@ def simulation_report(out_dir: str | Path, device: Device, store_paths: Sequence
                  cell(r, "calibrated_relative_l2_linear"), cell(r, "calibrated_relative_l2_log_y"),
                  r.get("raw_mb_per_s", "")] for name, label, r in rows],
         })
+    return sections
+
+
+def _model_section(model: dict[str, Any]) -> dict[str, Any]:
+    """``btf demo``'s model database: thesis Table 1 from the leave-one-out evaluation."""
+    ks = model["ks"]
+    return {
+        "title": "Model database (btf build-db): thesis Table 1, leave one out",
+        "text": f"log Y relative projection errors [%] of each material on bases merged without it; full "
+                f"report with spectra and reconstructions: {model['report_html']}. Trends: "
+                + "; ".join(f"{k}: {v}" for k, v in model["trends"].items()),
+        "table": [["class", "FMF"] + [f"class k={k}" for k in ks] + [f"global k={k}" for k in ks]] + [
+            [cls, f"{row['fmf']:.2f}"] + [("-" if row[f"{kind}_{k}"] is None else f"{row[f'{kind}_{k}']:.2f}")
+                                          for kind in ("class", "global") for k in ks]
+            for cls, row in model["table_1"].items()],
+    }
+
+
+def _acquisition_section(acquisition: dict[str, Any]) -> dict[str, Any]:
+    """``btf demo``'s acquisition evaluation: the thesis' claims with their verdicts and numbers."""
+    return {
+        "title": "Acquisition (btf evaluate acquisition): the thesis' claims, leave one out",
+        "text": f"Scale: {json.dumps(acquisition['scale'])}. Each verdict is computed from the numbers "
+                f"beside it; tables, ABRDF images and renderings: {acquisition['report_html']}.",
+        "table": [["claim", "verdict", "numbers"]] + [
+            [f"({k}) {c['claim']}", c["verdict"], json.dumps(c["numbers"])]
+            for k, c in acquisition["claims"].items()],
+    }
+
+
+def simulation_report(out_dir: str | Path, device: Device, store_paths: Sequence[str],
+                      run: dict[str, Any]) -> dict[str, Any]:
+    """Write ``report.json`` and ``report.html`` (with PNGs) for a simulated database.
+
+    Returns the report dictionary written to ``report.json``.
+    """
+    out = Path(out_dir)
+    fig_dir = out / "report_files"
+    fig_dir.mkdir(parents=True, exist_ok=True)
+    stores = [open_capture_store(p, mode="r") for p in store_paths]
+    materials = []
+    for path, store in zip(store_paths, stores):
+        stats = material_statistics(store)
+        material = store.group["truth"].attrs["material"]
+        materials.append({"store": str(path), "material_id": material["material_id"],
+                          "class": material["class_name"], "valid": True, **stats})
+
+    sections = _capture_sections(device, store_paths, stores, fig_dir)
+    sections.append(_materials_section(materials))
+    sections += _ingest_sections(run, store_paths, stores, fig_dir)
     if run.get("model"):
-        model = run["model"]
-        ks = model["ks"]
-        sections.append({
-            "title": "Model database (btf build-db): thesis Table 1, leave one out",
-            "text": f"log Y relative projection errors [%] of each material on bases merged without it; full "
-                    f"report with spectra and reconstructions: {model['report_html']}. Trends: "
-                    + "; ".join(f"{k}: {v}" for k, v in model["trends"].items()),
-            "table": [["class", "FMF"] + [f"class k={k}" for k in ks] + [f"global k={k}" for k in ks]] + [
-                [cls, f"{row['fmf']:.2f}"] + [("-" if row[f"{kind}_{k}"] is None else f"{row[f'{kind}_{k}']:.2f}")
-                                              for kind in ("class", "global") for k in ks]
-                for cls, row in model["table_1"].items()],
-        })
+        sections.append(_model_section(run["model"]))
     if run.get("acquisition"):
-        acquisition = run["acquisition"]
-        sections.append({
-            "title": "Acquisition (btf evaluate acquisition): the thesis' claims, leave one out",
-            "text": f"Scale: {json.dumps(acquisition['scale'])}. Each verdict is computed from the numbers "
-                    f"beside it; tables, ABRDF images and renderings: {acquisition['report_html']}.",
-            "table": [["claim", "verdict", "numbers"]] + [
-                [f"({k}) {c['claim']}", c["verdict"], json.dumps(c["numbers"])]
-                for k, c in acquisition["claims"].items()],
-        })
+        sections.append(_acquisition_section(run["acquisition"]))
     report = {"report": "btf-simulate", **run, "device": {
         "name": device.name, "n_cam": device.n_cam, "n_leds": device.n_leds, "n_turn": device.n_turn,
         "n_lv": device.n_lv, "texture_shape": list(device.texture_shape), "roi_shape": list(device.roi_shape)},

@@ -1,6 +1,6 @@
-"""BTF store -> BTF store on a common light x view sampling (DESIGN stage 7).
+"""BTF store -> BTF store on a common light x view sampling (docs/architecture.md, "Stages": resample).
 
-A BTF store written by ``btf ingest`` ("btf-texture", rows flattened over
+A BTF store written by ``btf ingest`` (``btf-texture``, :mod:`tasks.stores.btf`, rows flattened over
 (turntable, camera, light) in the dome's own directions) is resampled to a
 target sampling, the Cartesian product of a light set and a view set: the
 UBO2014 151 x 151 set (:func:`btfcore.capture.resample.ubo2014_directions`) or a
@@ -40,11 +40,16 @@ from btfcore.capture.resample import (
     ubo2014_directions,
     unique_directions,
 )
-from tasks.ingest import SCHEMA_NAME, SCHEMA_VERSION
-from tasks.integrity import create_array
-from tasks.staging import (begin_store, commit_staged, finish_store, staged_target, staging_path, store_attrs,
-                           trash_path)
-from tasks.stores import to_json_attr
+from tasks.compute import run_all
+from tasks.staging import commit_staged, staged_target, staging_path, store_attrs, trash_path
+from tasks.stores.btf import (
+    RESAMPLED_LV_ORDER,
+    SCHEMA_NAME,
+    SCHEMA_VERSION,
+    BtfStore,
+    create_btf_store,
+    open_btf_store,
+)
 
 #: The built-in target sampling.
 UBO2014 = "ubo2014"
@@ -201,8 +206,9 @@ def load_sampling(sampling: str | os.PathLike) -> Sampling:
 # --------------------------------------------------------------------------- stores
 
 
-def open_source(path: str | os.PathLike) -> zarr.Group:
-    """Open a finished BTF store for reading, or say what is wrong with it.
+def open_source(path: str | os.PathLike) -> BtfStore:
+    """Open a finished BTF store for reading (:func:`tasks.stores.btf.open_btf_store`), or say what is
+    wrong with it.
 
     Raises
     ------
@@ -212,40 +218,15 @@ def open_source(path: str | os.PathLike) -> zarr.Group:
         When it is not a btf-texture store, is unfinished (``complete`` false) or
         its arrays do not fit together; the message names the path and the fix.
     """
-    if not Path(path).exists():
-        raise FileNotFoundError(f"{path} does not exist; give a BTF store written by `btf ingest`")
-    try:
-        group = zarr.open_group(str(path), mode="r", zarr_format=3)
-    except (FileNotFoundError, ValueError, TypeError) as exc:
-        raise ValueError(f"{path} is not a Zarr v3 group ({exc}); give a BTF store written by `btf ingest`") from None
-    attrs = dict(group.attrs)
-    if attrs.get("schema") != SCHEMA_NAME:
-        raise ValueError(f"{path} is not a BTF store (schema {attrs.get('schema')!r}, expected "
-                         f"{SCHEMA_NAME!r}); give the output of `btf ingest`")
-    if not attrs.get("complete"):
-        raise ValueError(f"{path} is an unfinished BTF store (attribute complete is false); finish "
-                         f"`btf ingest` into it first (rerun the same `btf ingest CAPTURE --out {path}` to resume)")
-    missing = [name for name in ("btf", "light_dir", "view_dir") if name not in group]
-    if missing:
-        raise ValueError(f"{path}: arrays {missing} are missing; re-run `btf ingest` into a new --out")
-    n = group["btf"].shape[0]
-    for name in ("light_dir", "view_dir"):
-        if group[name].shape != (n, 3):
-            raise ValueError(f"{path}: {name} has shape {group[name].shape}, expected ({n}, 3) to match btf; "
-                             "re-run `btf ingest` into a new --out")
-    if _source_key(attrs) is None:
+    source = open_btf_store(path, produced_by="`btf ingest`")
+    if source.content_key is None:
         raise ValueError(f"{path}: attribute ingest_hash is missing; give a BTF store written by `btf ingest`")
-    return group
+    return source
 
 
-def _source_key(attrs: dict) -> str | None:
-    """What identifies a source store's content: its ingest hash (or, resampled, its resample hash)."""
-    return attrs.get("ingest_hash") or attrs.get("resample_hash")
-
-
-def resample_hash(source_attrs: dict, sampling: Sampling) -> str:
+def resample_hash(source: BtfStore, sampling: Sampling) -> str:
     """What a resampled store depends on: the source's content hash, the target directions, the schema."""
-    payload = {"source": _source_key(source_attrs), "sampling": sampling.digest(),
+    payload = {"source": source.content_key, "sampling": sampling.digest(),
                "schema": f"{SCHEMA_NAME}/{SCHEMA_VERSION}", "method": "barycentric-parabolic-delaunay"}
     return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:16]
 
@@ -272,20 +253,16 @@ def _resample_target(out: Path, key: str, overwrite: bool) -> tuple[Path, bool]:
     return staged_target(out, "resample_hash", key, overwrite or empty, lambda attrs: _refusal(out, attrs, key))
 
 
-def _whole(group: zarr.Group, name: str, data: np.ndarray) -> None:
-    create_array(group, name, shape=data.shape, dtype=data.dtype, chunks=data.shape, compressors=None)[...] = data
-
-
-def create_resampled_store(path: str | os.PathLike, source_path: str | os.PathLike, source: zarr.Group,
+def create_resampled_store(path: str | os.PathLike, source_path: str | os.PathLike, source: BtfStore,
                            sampling: Sampling, key: str, outside_view: np.ndarray,
-                           outside_light: np.ndarray) -> zarr.Group:
+                           outside_light: np.ndarray) -> BtfStore:
     """Create (replacing whatever is at ``path``) an empty resampled BTF store.
 
     Parameters
     ----------
     path : path-like
         The new store.
-    source_path, source : path-like, zarr.Group
+    source_path, source : path-like, BtfStore
         The finished source store (:func:`open_source`).
     sampling : Sampling
         Target directions.
@@ -297,39 +274,29 @@ def create_resampled_store(path: str | os.PathLike, source_path: str | os.PathLi
 
     Returns
     -------
-    zarr.Group
+    BtfStore
         ``btf`` (zeros), directions, ``lv_index``, target sets, ``outside_hull``,
         ``written`` (zeros) and the attributes, ``complete`` false.
     """
     n_v, n_l = sampling.n_v, sampling.n_l
-    src_btf = source["btf"]
-    h, w = src_btf.shape[1:3]
+    h, w = source.texture_shape
     light_dir, view_dir, lv_index = sampling.rows()
     outside = outside_view | outside_light
-    group = begin_store(path)
-    create_array(group, "btf", shape=(n_v * n_l, h, w, 3), chunks=(n_l, h, w, 3), dtype="float32",
-                       fill_value=0.0, compressors=None, dimension_names=["lv", "tex_row", "tex_col", "channel"])
-    for name, data in (("light_dir", light_dir), ("view_dir", view_dir), ("lv_index", lv_index),
-                       ("target_light_dirs", sampling.light_dirs), ("target_view_dirs", sampling.view_dirs),
-                       ("outside_hull", outside)):
-        _whole(group, name, data)
-    create_array(group, "written", shape=(n_v,), chunks=(1,), dtype="uint8", fill_value=0, compressors=None)
-    attrs = dict(source.attrs)
+    attrs = source.attrs
     resampled_from = {"path": str(Path(source_path).resolve()), "ingest_hash": attrs.get("ingest_hash")}
     if attrs.get("resample_hash"):
         resampled_from["resample_hash"] = attrs["resample_hash"]
-    group.attrs.put(to_json_attr({
-        "schema": SCHEMA_NAME, "schema_version": SCHEMA_VERSION, "units": attrs.get("units"),
-        "lv_order": ["view", "light"], "texture_shape": [h, w], "views_lights": [n_v, n_l],
+    return create_btf_store(path, {
+        "units": attrs.get("units"), "lv_order": RESAMPLED_LV_ORDER, "views_lights": [n_v, n_l],
         "sampling": sampling.name, "resampled_from": resampled_from, "resample_hash": key,
         "method": "barycentric interpolation on Delaunay triangulations in the parabolic map, "
                   "per-view light triangulation (btfcore.capture.resample.resample_weights); outside the "
                   "measured hull the nearest hull point's weights",
         "outside_hull": {"rows": int(outside.sum()), "view": int(outside_view.sum()),
                          "light": int(outside_light.sum())},
-        "complete": False,
-    }))
-    return finish_store(path, group)
+    }, light_dir=light_dir, view_dir=view_dir, lv_index=lv_index, texture_shape=(h, w), rows_per_chunk=n_l, band=h,
+        written_shape=(n_v,), small={"target_light_dirs": sampling.light_dirs, "target_view_dirs": sampling.view_dirs,
+                                     "outside_hull": outside})
 
 
 # --------------------------------------------------------------------------- work
@@ -370,7 +337,7 @@ def resample_views(source_path: str, out_path: str, views: Sequence[int], weight
     after all the group's data is written.
     """
     src = zarr.open_group(source_path, mode="r", zarr_format=3)["btf"]
-    out = zarr.open_group(out_path, mode="r+", zarr_format=3)
+    out = BtfStore(out_path, "r+").group
     n_l = weights.shape[0] // len(views)
     needed = np.unique(weights.indices)                           # sorted source rows
     step = src.chunks[0]
@@ -449,7 +416,7 @@ def check_inputs(source_path: str | os.PathLike, out_path: str | os.PathLike,
                 f"would stage its replacement in the source {src.name}")
         raise ValueError(f"--out {out_path} {what}; resampling never modifies its input, choose another --out")
     sampling = sampling if isinstance(sampling, Sampling) else load_sampling(sampling)
-    key = resample_hash(dict(source.attrs), sampling)
+    key = resample_hash(source, sampling)
     return (source, sampling, key, *_resample_target(out, key, overwrite))
 
 
@@ -490,22 +457,19 @@ def resample_store(source_path: str | os.PathLike, out_path: str | os.PathLike, 
     FileNotFoundError, ValueError, FileExistsError
         Bad source store, sampling or ``out_path`` (:func:`check_inputs`).
     """
-    from distributed import as_completed
-
     start = time.perf_counter()
     source, sampling, key, target, staged = check_inputs(source_path, out_path, sampling, overwrite=overwrite)
     n_v, n_l = sampling.n_v, sampling.n_l
     summary = {"rows": n_v * n_l, "views": n_v, "lights": n_l, "sampling": sampling.name, "staged": staged}
-    group = (zarr.open_group(str(target), mode="r+", zarr_format=3)
-             if (store_attrs(target) or {}).get("resample_hash") == key else None)
-    if group is not None and group.attrs.get("complete"):     # done; a staged one was killed before its commit
-        summary.update(_outside_counts(group))
+    store = BtfStore(target, "r+") if (store_attrs(target) or {}).get("resample_hash") == key else None
+    if store is not None and store.complete:                  # done; a staged one was killed before its commit
+        summary.update(_outside_counts(store))
         if staged:
             commit_staged(out_path, "resample")
         return {**summary, "views_processed": 0, "views_skipped": n_v, "tasks": 0,
                 "source_chunks_read": 0, "weights_seconds": 0.0, "seconds": round(time.perf_counter() - start, 3)}
     light_dir, view_dir, _ = sampling.rows()
-    src_light, src_view = source["light_dir"][...], source["view_dir"][...]
+    src_light, src_view = source.light_dir, source.view_dir
     try:
         W = resample_weights(src_light, src_view, light_dir, view_dir)
         outside_view, outside_light = lv_outside_hull(src_light, src_view, light_dir, view_dir)
@@ -513,27 +477,18 @@ def resample_store(source_path: str | os.PathLike, out_path: str | os.PathLike, 
         raise ValueError(f"{source_path}: {exc} (src_light/src_view: its light_dir/view_dir arrays); "
                          "re-run `btf ingest` into a new --out") from None
     weights_seconds = time.perf_counter() - start
-    if group is None:
-        group = create_resampled_store(target, source_path, source, sampling, key, outside_view, outside_light)
-    written = group["written"][...]
-    pending = [int(v) for v in np.flatnonzero(written == 0)]
-    row_bytes = int(np.prod(source["btf"].shape[1:])) * 4
+    if store is None:
+        store = create_resampled_store(target, source_path, source, sampling, key, outside_view, outside_light)
+    pending = [int(v) for v in np.flatnonzero(store.written == 0)]
+    row_bytes = int(np.prod(source.btf.shape[1:])) * 4
     slots = max(1, sum(client.nthreads().values()))
     groups = _view_groups(W, pending, n_l, row_bytes, max_views=max(1, math.ceil(len(pending) / (4 * slots))))
-    futures = [client.submit(resample_views, str(source_path), str(target), views,
-                             W[(np.asarray(views)[:, None] * n_l + np.arange(n_l)).ravel()], pure=False)
-               for views in groups]
-    done, chunks_read = 0, 0
-    for future in as_completed(futures):
-        result = future.result()
-        done += len(result["views"])
-        chunks_read += result["source_chunks"]
-        if progress is not None:
-            progress(done, len(pending))
-    if not group["written"][...].all():
-        raise RuntimeError(f"{target}: some views were not written; re-run to resume")
-    group.attrs["complete"] = True
-    summary.update(_outside_counts(group))
+    results = run_all(client, resample_views, [(str(source_path), str(target), views,
+                                                W[(np.asarray(views)[:, None] * n_l + np.arange(n_l)).ravel()])
+                                               for views in groups], progress, weights=[len(v) for v in groups])
+    chunks_read = sum(result["source_chunks"] for result in results)
+    store.mark_complete("views")
+    summary.update(_outside_counts(store))
     if staged:
         commit_staged(out_path, "resample")
     return {**summary, "views_processed": len(pending),
@@ -541,7 +496,7 @@ def resample_store(source_path: str | os.PathLike, out_path: str | os.PathLike, 
             "weights_seconds": round(weights_seconds, 3), "seconds": round(time.perf_counter() - start, 3)}
 
 
-def _outside_counts(group: zarr.Group) -> dict[str, int]:
-    counts = group.attrs["outside_hull"]
+def _outside_counts(store: BtfStore) -> dict[str, int]:
+    counts = store.attrs["outside_hull"]
     return {"outside_hull_rows": counts["rows"], "outside_view_hull_rows": counts["view"],
             "outside_light_hull_rows": counts["light"]}

@@ -1,4 +1,4 @@
-"""Where the real files of ``../shared/data`` are (DESIGN, data/MANIFEST.md).
+"""Where the real files of ``../shared/data`` are (their list: data/MANIFEST.md there).
 
 They are never copied into the repository: every reader finds them through
 :func:`shared_data_dir`, which honours ``$BTF_SHARED_DATA``.

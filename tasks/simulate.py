@@ -1,4 +1,4 @@
-"""Chunked generation of virtual-dome capture stores (DESIGN §4).
+"""Chunked generation of virtual-dome capture stores (stage 1; docs/simulator-physics.md).
 
 One material is one capture store ``<out>/<material_id>.zarr`` with its ground
 truth in ``truth/``. The unit of work is one *view* (turntable position,
@@ -17,6 +17,7 @@ import json
 import time
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
+from collections.abc import Sequence
 from typing import Any, Callable
 
 import numpy as np
@@ -147,7 +148,7 @@ class SimulationConfig:
         d = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "plan"}
         d["classes"] = list(self.classes)
         if self.plan is not None:                             # the whole plan is in each store's plan group
-            from tasks.measurement import plan_summary
+            from tasks.stores.measurement import plan_summary
             d["plan"] = plan_summary(self.plan.to_dict())
         return d
 
@@ -161,15 +162,17 @@ class MaterialSpec:
     class_name: str
     seed: int
 
+    @classmethod
+    def round_robin(cls, index: int, classes: Sequence[str], seed_words: Sequence[int]) -> MaterialSpec:
+        """Material ``index`` of a database whose classes take turns; its seed from ``[*seed_words, index]``."""
+        class_name = classes[index % len(classes)]
+        seed = int(np.random.SeedSequence([*seed_words, index]).generate_state(1)[0])
+        return cls(index, f"{index:03d}-{class_name}", class_name, seed)
+
 
 def material_plan(config: SimulationConfig) -> list[MaterialSpec]:
     """The materials of a database, classes round-robin, seeds derived from the root seed."""
-    specs = []
-    for index in range(config.n_materials):
-        class_name = config.classes[index % len(config.classes)]
-        seed = int(np.random.SeedSequence([config.seed, index]).generate_state(1)[0])
-        specs.append(MaterialSpec(index, f"{index:03d}-{class_name}", class_name, seed))
-    return specs
+    return [MaterialSpec.round_robin(index, config.classes, [config.seed]) for index in range(config.n_materials)]
 
 
 def illumination_patterns(n_leds: int, illumination: str) -> np.ndarray:
@@ -307,7 +310,7 @@ def simulate_view(store_path: str, config: SimulationConfig, spec: MaterialSpec,
     store.write_truth_view(turntable, camera, downsample2(truth_2x), truth_2x)
 
     # Light superposes: each pattern's radiance is the weighted sum of its LEDs'
-    # radiance, formed before the sensor adds noise (DESIGN §4).
+    # radiance, formed before the sensor adds noise (the linearity multiplexing rests on: VMV paper §3.2).
     weights = store.meta.illumination.astype(np.float32)                    # (n_illum, n_leds)
     planned_times = None
     if config.plan is not None:                 # a plan: only its patterns at this view, its brackets
@@ -417,7 +420,7 @@ def simulate_database(config: SimulationConfig, out_dir: str | Path, client: Any
     progress : callable, optional
         Called as ``progress(done, total)`` after each finished view.
     """
-    from distributed import as_completed
+    from tasks.compute import wait_all
 
     start = time.perf_counter()
     out_dir = Path(out_dir)
@@ -444,10 +447,7 @@ def simulate_database(config: SimulationConfig, out_dir: str | Path, client: Any
         records.append({"material_id": spec.material_id, "class": spec.class_name, "seed": spec.seed,
                         "store": str(path)})
     total = len(futures)
-    for done, future in enumerate(as_completed(futures), 1):
-        future.result()  # re-raises a worker's error here, naming the view
-        if progress is not None:
-            progress(done, total)
+    wait_all(futures, progress)  # re-raises a worker's error here, naming the view
     for path in stores:
         store = open_capture_store(path, mode="r+", require_complete=False)
         if not store.group.attrs.get("complete", False):

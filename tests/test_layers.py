@@ -1,4 +1,4 @@
-"""The layers import one way: flows -> tasks -> btfcore (DESIGN §2)."""
+"""The layers import one way: flows -> tasks -> btfcore (docs/architecture.md, "Layers")."""
 
 from __future__ import annotations
 

@@ -23,8 +23,8 @@ and patterns mixed. This module builds the same :class:`SolveOperator` from
 
 References
 ----------
-.. [1] The thesis (``reference/000_07a399c75a6bdea8.txt``): App. paper 1, eq. (3);
-   VMV paper §4.1; paper 4, eqs. (4), (10).
+.. [1] The thesis, App. paper 1 (den Brok et al.), eq. (3); VMV paper §4.1;
+   paper 4, eqs. (4), (10).
 """
 
 from __future__ import annotations

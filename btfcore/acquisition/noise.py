@@ -1,6 +1,6 @@
 """A sensor-like measurement-noise model for simulated acquisitions in BTF space.
 
-The acquisition evaluation (DESIGN stage 12, ``docs/evaluation.md``) simulates
+The acquisition evaluation (stage 12, ``docs/evaluation.md``) simulates
 sparse and multiplexed measurements directly from a ground-truth BTF instead
 of through the raw-image simulator. Each measured image (one camera, one
 illumination pattern, all texels and channels of the texture) is one exposure:
@@ -25,8 +25,8 @@ Pure numerics: no I/O, seeds given by the caller.
 
 References
 ----------
-.. [1] The thesis (``reference/000_07a399c75a6bdea8.txt``), VMV paper §3.1:
-   photon noise "strongly counteracts" the multiplexing advantage [HS79, SNB07].
+.. [1] The thesis, VMV paper §3.2 (Illumination multiplexing): photon noise
+   "strongly counteracts" the multiplexing advantage [HS79, SNB07].
 .. [2] Y. Y. Schechner, S. K. Nayar and P. N. Belhumeur, "Multiplexing for optimal
    lighting", IEEE TPAMI 29(8), 2007 (photon + read noise of multiplexed images).
 """

@@ -35,11 +35,11 @@ acquisition time comes from :mod:`btfcore.acquisition.time_model`.
 
 References
 ----------
-.. [1] The thesis (``reference/000_07a399c75a6bdea8.txt``): VMV paper
-   "Multiplexed acquisition" §4.2 (database bootstrapping, line 1074), §5.1
-   (device and orders, lines 1082-1094), Table 2 (line 1144); paper 4 "Rapid
-   material capture through sparse and multiplexed measurements" §5 (lines
-   1428, 1449-1476).
+.. [1] The thesis, VMV paper ("Fast multiplexed acquisition of high-dynamic-range
+   material appearance") §4.2 (database bootstrapping), §5.1 (device and
+   orders), Table 2; paper 4 ("Rapid material capture through sparse and
+   multiplexed measurements") §5.2 (camera-parallel sampling) and §5.4
+   (sparse multiplexed acquisition, n_s = 400, acquisition times).
 """
 
 from __future__ import annotations
@@ -609,9 +609,9 @@ def sparse_multiplexed_plan(device: Device, selection, exposure: ExposureModel |
 
     Notes
     -----
-    Paper 4, §5 used ``n_s = 400`` (pattern, turntable) pairs and reports
+    Paper 4, §5.4 used ``n_s = 400`` (pattern, turntable) pairs and reports
     12-22 min against 1.2-4 h for sparse single-light or full multiplexed
-    acquisition (line 1476).
+    acquisition.
     """
     exposure = exposure or ExposureModel()
     cams = _cameras(device, cameras)

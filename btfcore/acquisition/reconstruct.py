@@ -1,7 +1,7 @@
 """Reconstruction of a full BTF from sparse and/or illumination-multiplexed measurements.
 
 Every method here fits coefficients ``C`` of a linear basis ``U`` (``(n_lv, k)``,
-DESIGN §2) to a measurement ``G B`` and returns :math:`\\hat B = U C`. The
+docs/architecture.md, "Matrix convention") to a measurement ``G B`` and returns :math:`\\hat B = U C`. The
 measurement operator ``G`` acts from the left and is built from two parts:
 
 * a **row selection** ``rows`` (paper 1's :math:`\\mathbf M`, paper 4's
@@ -47,17 +47,17 @@ ABTF patch bases (paper 1, §3.3, §4.1.2) have :func:`abtf_operator` and
 
 References
 ----------
-.. [1] The thesis (``reference/000_07a399c75a6bdea8.txt``): App. paper 1,
-   D. den Brok, H. C. Steinhausen, M. B. Hullin and R. Klein, "Patch-based
-   sparse reconstruction of material BTFs", Journal of WSCG 22, 2014, eq. (3)
-   (line 553) and §4.1.2 (line 630); summary eq. (line 258).
-.. [2] App. "Multiplexed acquisition" (VMV 2015), D. den Brok, M. Weinmann
-   and R. Klein, "Towards efficient multiplexed BTF acquisition", §4.1
-   (lines 1058-1072).
+.. [1] The thesis, App. paper 1 (den Brok et al.): D. den Brok, H. C.
+   Steinhausen, M. B. Hullin and R. Klein, "Patch-based sparse reconstruction
+   of material BTFs", Journal of WSCG 22, 2014, §3.1 eq. (3) and §4.1.2; the
+   patch equation of the thesis' summary of it, ch. 2.1.
+.. [2] The thesis, App. VMV paper: D. den Brok, H. C. Steinhausen and R. Klein,
+   "Fast multiplexed acquisition of high-dynamic-range material appearance",
+   Vision, Modeling & Visualization 2015, §4.1 (thresholded de-noising).
 .. [3] App. paper 4, D. den Brok, M. Weinmann and R. Klein, "Rapid material
    capture through sparse and multiplexed measurements", Computers &
-   Graphics 73, 2018, eqs. (1), (2), (4), (10) (lines 1258-1364), λ values
-   (line 1430, line 1445).
+   Graphics 73, 2018, eqs. (1), (2), (4), (10) (§3-§4.4), λ values (§5.2,
+   §5.3).
 .. [4] J. B. Nielsen, H. W. Jensen and R. Ramamoorthi, "On optimal, minimal
    BRDF sampling for reflectance acquisition", ACM TOG 34(6), 2015.
 """
@@ -96,11 +96,11 @@ __all__ = [
 
 #: Methods of :func:`solve_operator` (``'pinv'`` and ``'tikhonov'`` also for :func:`abtf_operator`).
 RECONSTRUCTION_METHODS: tuple[str, ...] = ("pinv", "tikhonov", "direct", "projection", "thresholded")
-#: λ of :math:`R = \lambda \Sigma^{-1}` for Nielsen et al.'s log-mapped bases (paper 4, line 1430, after [4]).
+#: λ of :math:`R = \lambda \Sigma^{-1}` for Nielsen et al.'s log-mapped bases (paper 4 §5.2, after [4]).
 LAMBDA_NIELSEN = 40.0
-#: λ for the relative-error ALS bases of paper 4 (line 1430; also its multiplexed results, line 1445).
+#: λ for the relative-error ALS bases of paper 4 (§5.2; also its multiplexed results, §5.3).
 LAMBDA_ALS = 0.01
-#: Textures whose variance lies above this decile are left out by ``'thresholded'`` (VMV paper, line 1072).
+#: Textures whose variance lies above this decile are left out by ``'thresholded'`` (VMV paper §4.1).
 THRESHOLD_DECILE = 9
 
 
@@ -426,43 +426,59 @@ def solve_operator(
     if method not in RECONSTRUCTION_METHODS:
         raise ValueError(f"unknown reconstruction method {method!r}; choose one of {RECONSTRUCTION_METHODS}")
     u = _as_basis(U)
-    n_lv, k = u.shape
     lam_v = _as_lam(lam, method)
-    s = _as_sigma(sigma, k) if lam_v > 0 else None
+    s = _as_sigma(sigma, u.shape[1]) if lam_v > 0 else None
     p = None if patterns is None else _as_patterns(patterns)
     kw: dict = {"method": method, "lam": lam_v}
-    hint = "measure at least k rows, pass fewer basis vectors, or use method='tikhonov' with lam > 0"
-
     if method in ("pinv", "tikhonov"):
-        if p is not None:
-            raise ValueError(f"method={method!r} is for single-light (sparse) measurements; use method='direct' "
-                             f"(paper 4, eq. 10) for multiplexed ones")
-        r = _as_rows(rows, n_lv, "rows of U (light/view pairs)")
-        A = u if r is None else u[r]                                  # eq. (3): M U, M a row selection
-        R, cond = _regularised_solve(A, s, lam_v, "M U", hint)
-        return _finish(R, u, fused, dtype, rows=r, condition=cond, **kw)
-
+        return _sparse_operator(u, s, lam_v, p, rows, method, fused, dtype, kw)
     if method == "direct":
-        if p is None:
-            raise ValueError("method='direct' fits multiplexed measurements: pass patterns (n_p, n_lights); "
-                             "for single-light sparse data use 'pinv' or 'tikhonov'")
-        n_views = _views(n_lv, p)
-        r = _as_rows(rows, n_views * p.shape[0], "multiplexed rows (view, pattern)")
-        MU = _multiplex_rows(u, p)                                    # (I_views (x) M) U
-        A = MU if r is None else MU[r]                                # eq. (10): S M U
-        hint_d = "measure at least k rows, pass fewer basis vectors, or regularise with lam > 0 (paper 4: 0.01)"
-        try:
-            R, cond = _regularised_solve(A, s, lam_v, "S M U", hint_d)
-        except ValueError as err:
-            rank_p = int(np.linalg.matrix_rank(p))
-            if rank_p < p.shape[1]:
-                raise ValueError(f"{err} (the patterns themselves have rank {rank_p} < {p.shape[1]} lights)") from None
-            raise
-        return _finish(R, u, fused, dtype, rows=r, condition=cond, **kw)
+        return _direct_operator(u, s, lam_v, p, rows, fused, dtype, kw)
+    return _denoising_operator(u, p, rows, method, variance, decile, fused, dtype, kw)
 
+
+def _sparse_operator(u: np.ndarray, s: np.ndarray | None, lam_v: float, p: np.ndarray | None, rows,
+                     method: str, fused: bool | None, dtype, kw: dict) -> SolveOperator:
+    """:func:`solve_operator` for ``'pinv'`` and ``'tikhonov'``: single-light rows of ``u`` (paper 1, eq. (3))."""
+    hint = "measure at least k rows, pass fewer basis vectors, or use method='tikhonov' with lam > 0"
+    if p is not None:
+        raise ValueError(f"method={method!r} is for single-light (sparse) measurements; use method='direct' "
+                         f"(paper 4, eq. 10) for multiplexed ones")
+    r = _as_rows(rows, u.shape[0], "rows of U (light/view pairs)")
+    A = u if r is None else u[r]                                      # eq. (3): M U, M a row selection
+    R, cond = _regularised_solve(A, s, lam_v, "M U", hint)
+    return _finish(R, u, fused, dtype, rows=r, condition=cond, **kw)
+
+
+def _direct_operator(u: np.ndarray, s: np.ndarray | None, lam_v: float, p: np.ndarray | None, rows,
+                     fused: bool | None, dtype, kw: dict) -> SolveOperator:
+    """:func:`solve_operator` for ``'direct'``: the multiplexed rows fitted as they are (paper 4, eq. (10))."""
+    if p is None:
+        raise ValueError("method='direct' fits multiplexed measurements: pass patterns (n_p, n_lights); "
+                         "for single-light sparse data use 'pinv' or 'tikhonov'")
+    n_views = _views(u.shape[0], p)
+    r = _as_rows(rows, n_views * p.shape[0], "multiplexed rows (view, pattern)")
+    MU = _multiplex_rows(u, p)                                        # (I_views (x) M) U
+    A = MU if r is None else MU[r]                                    # eq. (10): S M U
+    hint_d = "measure at least k rows, pass fewer basis vectors, or regularise with lam > 0 (paper 4: 0.01)"
+    try:
+        R, cond = _regularised_solve(A, s, lam_v, "S M U", hint_d)
+    except ValueError as err:
+        rank_p = int(np.linalg.matrix_rank(p))
+        if rank_p < p.shape[1]:
+            raise ValueError(f"{err} (the patterns themselves have rank {rank_p} < {p.shape[1]} lights)") from None
+        raise
+    return _finish(R, u, fused, dtype, rows=r, condition=cond, **kw)
+
+
+def _denoising_operator(u: np.ndarray, p: np.ndarray | None, rows, method: str, variance, decile: float,
+                        fused: bool | None, dtype, kw: dict) -> SolveOperator:
+    """:func:`solve_operator` for ``'projection'`` and ``'thresholded'`` (VMV §4.1), the demultiplexing
+    folded in when patterns are given."""
     if rows is not None:
         raise ValueError(f"method={method!r} projects the whole demultiplexed BTF; it takes no rows "
                          f"(use method='direct' with rows for sparse multiplexed measurements)")
+    n_lv, k = u.shape
     R, dropped, cond = _denoise_operator(u, method, variance, decile)
     if cond is not None:
         kw["condition"] = cond
@@ -762,7 +778,7 @@ def abtf_operator(
     Notes
     -----
     The patch measurement is :math:`S_{patch} = I_{p^2} \\otimes S` (thesis
-    line 260; see :func:`btfcore.model.abtf.patch_matrix` on why the thesis'
+    ch. 2.1, the summary of paper 1; see :func:`btfcore.model.abtf.patch_matrix` on why the thesis'
     :math:`\\mathbf 1_{p^2}` is the identity): it selects rows
     ``d * n_lv + rows[j]`` of ``U`` for texel ``d`` of the patch, in the
     order ``(d, j)`` of ``patch_matrix`` applied to the measured texture, and

@@ -25,11 +25,11 @@ turntable) pair is measured by all cameras at once). See ``docs/sampling.md``.
 
 References
 ----------
-.. [1] The thesis (``reference/000_07a399c75a6bdea8.txt``): paper 1 (den Brok
-   et al., "Patch-based sparse reconstruction of material BTFs", WSCG 2014),
-   §3.3-3.4 and Alg. 1 (lines 570-615), §4.2 and Fig. 3b (lines 626, 656);
-   paper 4 ("sparse and multiplexed acquisition"), §4.3, eqs. (4) and (10)
-   (lines 1297, 1349-1359), §5.2 (line 1428).
+.. [1] The thesis, App. paper 1 (den Brok et al., "Patch-based sparse
+   reconstruction of material BTFs", WSCG 2014), §3.3-3.4 and Alg. 1, §4.2
+   and Fig. 3b (the 7x7 parabolic map); paper 4 ("Rapid material capture
+   through sparse and multiplexed measurements"), §4.3-4.4, eqs. (4) and (10),
+   §5.2 (camera-parallel sampling).
 .. [2] W. Matusik, H. Pfister, M. Brand and L. McMillan, "Efficient isotropic
    BRDF measurement", EGSR 2003 (the random swap).
 .. [3] P. Businger and G. H. Golub, "Linear least squares solutions by
@@ -410,7 +410,7 @@ def random_swap(
 
     References
     ----------
-    .. [1] Thesis, paper 1, §3.4 and Alg. 1 (line 593); paper 4, §4.3 (line 1349).
+    .. [1] Thesis, App. paper 1 (den Brok et al.), §3.4 and Alg. 1; paper 4, §4.3.
     """
     units = _units(U, groups, patch)
     n_s = _check_n_s(n_s, units)
@@ -805,6 +805,18 @@ def _exchange(units: _Units, sel: np.ndarray, max_steps: int, width: int, n_ext:
     return sel, history, converged
 
 
+def _check_greedy_settings(max_steps: Any, candidates: Any, pairs: Any, scan: Any,
+                           q: Any) -> tuple[int, int, int, int, float]:
+    """:func:`greedy`'s step settings, checked: ``(max_steps, candidates, pairs, scan, q)``."""
+    max_steps = _check_int(max_steps, "max_steps", 0)
+    candidates = _check_int(candidates, "candidates", 2)
+    pairs = _check_int(pairs, "pairs", 1)
+    scan = _check_int(scan, "scan", 1)
+    if not q >= 1:
+        raise ValueError(f"q must be >= 1 (the norm of the smooth kappa), got {q!r}")
+    return max_steps, candidates, pairs, scan, float(q)
+
+
 def greedy(
     U: np.ndarray,
     n_s: int,
@@ -902,13 +914,7 @@ def greedy(
     """
     units = _units(U, groups, patch)
     n_s = _check_n_s(n_s, units)
-    max_steps = _check_int(max_steps, "max_steps", 0)
-    candidates = _check_int(candidates, "candidates", 2)
-    pairs = _check_int(pairs, "pairs", 1)
-    scan = _check_int(scan, "scan", 1)
-    if not q >= 1:
-        raise ValueError(f"q must be >= 1 (the norm of the smooth kappa), got {q!r}")
-    q = float(q)
+    max_steps, candidates, pairs, scan, q = _check_greedy_settings(max_steps, candidates, pairs, scan, q)
     sel = _start(units, n_s, seed)
     sel = _batched(units, sel, max_steps, q)                                          # construction
     if progress is not None:
@@ -1000,7 +1006,7 @@ def parabolic_map_sampling(light_dirs: np.ndarray, view_dirs: np.ndarray, n: int
     that snap to the same direction give it once. Directions within
     :data:`btfcore.capture.resample.DIRECTION_TOL` count as one. The same views are
     used for every light, so a camera dome keeps its parallelism (thesis
-    line 264: "one and the same subset of the available cameras is used
+    ch. 2.1, the summary of paper 1: "one and the same subset of the available cameras is used
     throughout").
     """
     L = _as_dirs(light_dirs, "light_dirs")

@@ -33,16 +33,15 @@ The published times used are those of the thesis (see
 
 References
 ----------
-.. [1] The thesis (``reference/000_07a399c75a6bdea8.txt``). VMV paper
-   "Multiplexed acquisition", §5.1 (line 1082: 11 cameras, maximum frame rate
-   8 Hz, 198 LEDs; line 1094: 12 turntable positions of 30°), Table 2
-   (line 1144: shutter times [ms] and acquisition times [h], single light vs
-   multiplexed), §5.2 (line 1130: 4 exposure steps single-light, 1-2
-   multiplexed), §5.3 (line 1163: bootstrapping "approximately 9 hours, as
-   opposed to almost 24 hours"). Paper 4 "Rapid material capture through
-   sparse and multiplexed measurements", §5 (line 1428: n_s pairs of light
-   source and turntable rotation, all cameras; line 1476: "between 1.2 and 4 h
-   ... 12-22 min").
+.. [1] The thesis, App. VMV paper ("Fast multiplexed acquisition of
+   high-dynamic-range material appearance"): §5.1 (11 cameras, maximum frame
+   rate 8 Hz, 198 LEDs; 12 turntable positions of 30°), Table 2 (shutter times
+   [ms] and acquisition times [h], single light vs multiplexed), §5.2 with
+   Table 2 (4 exposure steps single-light, 1-2 multiplexed), §5.3
+   (bootstrapping "approximately 9 hours, as opposed to almost 24 hours").
+   Paper 4 "Rapid material capture through sparse and multiplexed
+   measurements": §5.2 (n_s pairs of light source and turntable rotation,
+   all cameras), §5.4 ("between 1.2 and 4 h ... 12-22 min").
 """
 
 from __future__ import annotations
@@ -84,10 +83,10 @@ __all__ = [
 
 # --------------------------------------------------------------------------- published data
 
-#: VMV paper ("Multiplexed acquisition", thesis line 1144), Table 2: shutter
+#: VMV paper ("Fast multiplexed acquisition ..."), Table 2: shutter
 #: times [ms] and acquisition times [h], single light vs multiplexed (S-matrix
 #: order 199), DOME II, 4 material patches measured at once. Single-light
-#: brackets were taken at 10 dB camera gain, multiplexed at 0 dB (line 1088).
+#: brackets were taken at 10 dB camera gain, multiplexed at 0 dB (VMV paper §5.1).
 VMV_TABLE2: dict[str, dict[str, Any]] = {
     "cloth": {"single_ms": (150.0, 608.2, 2466.2, 10000.0), "multiplexed_ms": (15.0, 45.0),
               "single_h": 10.8, "multiplexed_h": 1.8, "rel_delta": -0.83},
@@ -97,7 +96,7 @@ VMV_TABLE2: dict[str, dict[str, Any]] = {
              "single_h": 4.4, "multiplexed_h": 1.2, "rel_delta": -0.75},
 }
 
-#: Sparse samples of paper 4's combined experiments (thesis line 1449).
+#: Sparse samples of paper 4's combined experiments (paper 4 §5.4).
 PAPER4_N_SPARSE = 400
 
 
@@ -135,23 +134,23 @@ class PublishedFigure:
 
 #: The published acquisition times the model is fitted to and judged on.
 PUBLISHED_FIGURES: tuple[PublishedFigure, ...] = (
-    *(PublishedFigure(f"{m}-{kind}", m, kind, VMV_TABLE2[m][f"{kind}_h"], "VMV Table 2 (thesis line 1144)",
+    *(PublishedFigure(f"{m}-{kind}", m, kind, VMV_TABLE2[m][f"{kind}_h"], "VMV Table 2",
                       "full acquisition, 12 turntable positions x "
                       + ("198 single LEDs, 4 exposure steps" if kind == "single"
                          else f"199 S-matrix patterns, {len(VMV_TABLE2[m]['multiplexed_ms'])} exposure step(s)"))
       for m in ("cloth", "leather", "wood") for kind in ("single", "multiplexed")),
     PublishedFigure("p4-sparse-multiplexed-min", "leather", "sparse-multiplexed", 12 / 60,
-                    "paper 4 §5 (thesis line 1476)",
+                    "paper 4 §5.4",
                     "lower end of '12-22 min', n_s = 400 (pattern, turntable) pairs; read as the leather (the "
                     "faster multiplexed material); paper 4's samples are not the VMV ones, VMV shutter times assumed"),
     PublishedFigure("p4-sparse-multiplexed-max", "cloth", "sparse-multiplexed", 22 / 60,
-                    "paper 4 §5 (thesis line 1476)",
+                    "paper 4 §5.4",
                     "upper end of '12-22 min', n_s = 400; read as the cloth; VMV shutter times assumed"),
     PublishedFigure("p4-sparse-single-max", "leather", "sparse-single", 4.0,
-                    "paper 4 §5 (thesis lines 1428, 1476)",
+                    "paper 4 §5.2, §5.4",
                     "upper end of 'between 1.2 and 4 h' (the lower end is the full multiplexed leather, "
                     "1.2 h, above): sparse single-light, n_s = 400 (LED, turntable) pairs, leather"),
-    PublishedFigure("leather-bootstrapping", "leather", "bootstrapping", 9.0, "VMV §5.3 (thesis line 1163)",
+    PublishedFigure("leather-bootstrapping", "leather", "bootstrapping", 9.0, "VMV §5.3",
                     "'approximately 9 hours'; quadrant brackets not published: single-light bracket / m "
                     "(ExposureModel, exponent 1) for the order-47 patterns", bar=False),
 )

@@ -10,7 +10,8 @@ Two linear methods, each named after its source as in colour-demosaicing:
 
 :func:`demosaic` dispatches by name (:data:`DEMOSAICING_METHODS`). Both
 methods are linear and keep the input's scale: no clipping to ``[0, 1]``, so
-they apply to merged HDR radiance in the Bayer domain (DESIGN stage 3).
+they apply to merged HDR radiance in the Bayer domain (stage 3,
+docs/architecture.md, "Stages").
 
 Layouts (``pattern``) name the 2x2 top-left block of the mosaic read
 row-major, as :func:`btfcore.simulate.sensor.bayer_channel_index` does:
@@ -50,6 +51,8 @@ from typing import Callable
 import cv2
 import numpy as np
 
+from btfcore.dome import BAYER_PATTERNS
+
 __all__ = [
     "DEMOSAICING_METHODS",
     "demosaic",
@@ -57,7 +60,6 @@ __all__ = [
     "demosaicing_CFA_Bayer_bilinear",
 ]
 
-_PATTERNS = ("RGGB", "BGGR", "GRBG", "GBRG")
 #: Border names -> OpenCV modes: 'reflect' is numpy's 'symmetric' (d c b a | a b c d), 'mirror' numpy's
 #: 'reflect' (c b | a b c).
 _BORDERS = {"reflect": cv2.BORDER_REFLECT, "mirror": cv2.BORDER_REFLECT_101}
@@ -101,8 +103,8 @@ def _prepare(cfa: np.ndarray, pattern: str, border: str, min_size: int) -> tuple
     if min(arr.shape[-2:]) < min_size:
         raise ValueError(f"cfa must be at least {min_size}x{min_size} pixels, got {arr.shape[-2:]}")
     pat = str(pattern).upper()
-    if pat not in _PATTERNS:
-        raise ValueError(f"unknown Bayer pattern {pattern!r}; choose one of {', '.join(_PATTERNS)}")
+    if pat not in BAYER_PATTERNS:
+        raise ValueError(f"unknown Bayer pattern {pattern!r}; choose one of {', '.join(BAYER_PATTERNS)}")
     if border not in _BORDERS:
         raise ValueError(f"unknown border {border!r}; choose one of {', '.join(_BORDERS)}")
     bad = ~np.isfinite(arr)
@@ -155,7 +157,7 @@ def demosaicing_CFA_Bayer_bilinear(cfa: np.ndarray, pattern: str = "RGGB", *, bo
     out : (..., H, W, 3) ndarray, optional
         Buffer of the result's dtype to write into, C-contiguous or a strided view
         that reshapes without a copy (e.g. three channels of a wider stack); reuse it
-        across calls: first-touch of new memory is slow, DESIGN §5.
+        across calls: first-touch of new memory is slow (docs/architecture.md, "Pitfalls").
 
     Returns
     -------
@@ -227,7 +229,7 @@ def demosaicing_CFA_Bayer_Malvar2004(cfa: np.ndarray, pattern: str = "RGGB", *, 
     out : (..., H, W, 3) ndarray, optional
         Buffer of the result's dtype to write into, C-contiguous or a strided view
         that reshapes without a copy (e.g. three channels of a wider stack); reuse it
-        across calls: first-touch of new memory is slow, DESIGN §5.
+        across calls: first-touch of new memory is slow (docs/architecture.md, "Pitfalls").
 
     Returns
     -------

@@ -20,9 +20,10 @@ degradation under photon noise (:func:`demultiplexed_noise_std`,
 
 References
 ----------
-.. [1] The thesis (``reference/000_07a399c75a6bdea8.txt``), §3.1, the SNR
-   ratio (line 292) and photon noise (lines 294, 303); App. "Multiplexed
-   acquisition" (VMV 2015 / SPIE 9398), 3.3 (lines 832-846).
+.. [1] The thesis, ch. 3.1 (summary of papers 2 and 3): the SNR ratio and
+   photon noise; App. "Multiplexed acquisition" (paper 2, SPIE 9398) §3.3 and
+   the VMV paper §3.2 (S-matrices, the quadratic residue construction,
+   truncation and least squares).
 .. [2] M. Harwit and N. J. A. Sloane, *Hadamard Transform Optics*, Academic
    Press, 1979, ch. 2-3.
 .. [3] Y. Y. Schechner, S. K. Nayar and P. N. Belhumeur, "Multiplexing for
@@ -164,7 +165,7 @@ def demultiplex_operator(patterns: np.ndarray, *, method: str = "lstsq") -> np.n
 
     which for ``k = n`` is :math:`S^{-1} = \\tfrac{2}{n+1}(2S^T - J)`. The
     thesis solves the truncated system "in the least-squares sense" (App.
-    "Multiplexed acquisition", 3.3, line 846).
+    "Multiplexed acquisition" §3.3; VMV paper §3.2).
     """
     if method not in DEMULTIPLEX_METHODS:
         raise ValueError(f"unknown demultiplexing method {method!r}; choose one of {DEMULTIPLEX_METHODS}")
@@ -282,7 +283,7 @@ def snr_gain(patterns: np.ndarray) -> float:
 
     Notes
     -----
-    Thesis §3.1 (line 292), after Harwit & Sloane:
+    Thesis ch. 3.1 (the SNR ratio), after Harwit & Sloane:
 
     .. math:: \\sqrt{\\frac{\\mathrm{MSE}}{\\mathrm{MSE}_{demultiplexed}}}
               = \\sqrt{\\frac{n_i}{\\operatorname{tr}\\left[(M^T M)^{-1}\\right]}}
@@ -290,7 +291,8 @@ def snr_gain(patterns: np.ndarray) -> float:
     with :math:`n_i` the number of LEDs (columns of ``M``). The identity
     (single-light) design gives 1. An S-matrix of order ``n`` has
     :math:`\\operatorname{tr}[(S^T S)^{-1}] = 4n^2/(n+1)^2`, so the gain is
-    :math:`(n+1)/(2\\sqrt n) \\approx \\sqrt n / 2` (VMV paper 3.3, line 840).
+    :math:`(n+1)/(2\\sqrt n) \\approx \\sqrt n / 2` (App. "Multiplexed acquisition" §3.3;
+    VMV paper §3.2).
     The trace is computed as :math:`\\|P\\|_F^2`, since
     :math:`P P^T = (M^T M)^{-1}`.
     """
@@ -338,7 +340,7 @@ def demultiplexed_noise_std(
     A multiplexed image holds the light of :math:`(n+1)/2` LEDs, so its
     photon noise is about :math:`\\sqrt{(n+1)/2}` times that of a single-LED
     image: the photon-noise term eats up the multiplexing advantage (thesis
-    §3.1, lines 294 and 303).
+    §3.1, the SNR-gain formula and the remark on photon noise that follows it).
     """
     P = demultiplex_operator(patterns)
     M = _as_patterns(patterns)
@@ -393,7 +395,7 @@ def noise_gain(patterns: np.ndarray, signal: np.ndarray | None = None, *, read_n
     which is :func:`snr_gain` squared for :math:`x \\ll \\sigma_r^2` and
     tends to :math:`(n+1)/(2n) \\approx 1/2` when photon noise dominates:
     the "degradation of signal-to-signal-dependent-noise ratio ... by
-    :math:`1/\\sqrt 2` in the worst case" of thesis §3.1 (line 303).
+    :math:`1/\\sqrt 2` in the worst case" of thesis ch. 3.1.
     """
     M = _as_patterns(patterns)
     if signal is None:

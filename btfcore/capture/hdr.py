@@ -289,14 +289,23 @@ def merge_linear(frames: np.ndarray, exposure_time: Any, *, black_level: float |
         raise ValueError("frames must be (n_exp, ...), got a scalar")
     if y.dtype.kind not in "uif":
         raise ValueError(f"frames must be integer or float raw values, got dtype {y.dtype}")
-    n_exp = y.shape[0]
-    t = _check_times(exposure_time, n_exp)
+    t = _check_times(exposure_time, y.shape[0])
     _check_finite(y, "frames")
+    black, params = _linear_params(y, t, black_level, white_level, gain_e_per_dn, read_noise_e, saturation_margin,
+                                   min_signal_dn, n_iter, dtype)
+    d = None if dark is None else _check_dark(dark, y)
+    return _merge_linear_blocks(y, black, d, params)
+
+
+def _linear_params(y: np.ndarray, t: np.ndarray, black_level: float | np.ndarray, white_level: float,
+                   gain_e_per_dn: float | None, read_noise_e: float | None, saturation_margin: float,
+                   min_signal_dn: float | None, n_iter: int,
+                   dtype: type | np.dtype) -> tuple[np.ndarray, _LinearParams]:
+    """:func:`merge_linear`'s black level, broadcast to a frame, and its checked noise model and thresholds."""
     dtype = np.dtype(dtype)
     if dtype.kind != "f":
         raise ValueError(f"dtype must be a floating type, got {dtype}")
-    pix_shape = y.shape[1:]
-    black = _broadcast(black_level, pix_shape, "black_level", dtype)
+    black = _broadcast(black_level, y.shape[1:], "black_level", dtype)
     white = _check_scalar(white_level, "white_level", positive=True)
     if np.any(black >= white):
         raise ValueError(f"black_level (max {float(np.max(black))}) must be below white_level {white}")
@@ -314,34 +323,47 @@ def merge_linear(frames: np.ndarray, exposure_time: Any, *, black_level: float |
         min_sig = _check_scalar(min_signal_dn, "min_signal_dn")
     if int(n_iter) < 1:
         raise ValueError(f"n_iter must be >= 1, got {n_iter}")
-
-    d = None
-    if dark is not None:
-        d = np.asarray(dark)
-        if d.dtype.kind not in "uif":
-            raise ValueError(f"dark must be numeric, got dtype {d.dtype}")
-        _check_finite(d, "dark")
-        if d.ndim == y.ndim and d.shape[0] not in (1, n_exp):
-            raise ValueError(f"dark has {d.shape[0]} exposures along axis 0, the frames {n_exp}: give one "
-                             f"dark frame per exposure (dark_per_exposure makes them)")
-        try:
-            if np.broadcast_shapes(d.shape, y.shape) != y.shape:
-                raise ValueError
-        except ValueError:
-            raise ValueError(f"dark has shape {d.shape}, the frames {y.shape}: give one dark frame per "
-                             f"exposure (n_exp, ...) or use dark_per_exposure") from None
-
-    # Flatten the pixels and work through blocks that stay in cache (every step is per pixel).
-    n_pix = int(np.prod(pix_shape, dtype=np.int64))
-    y2 = y.reshape(n_exp, n_pix)
-    b2 = black.reshape(1, -1) if black.ndim == 0 else np.broadcast_to(black, pix_shape).reshape(1, n_pix)
-    d2 = None if d is None else np.broadcast_to(d, y.shape).reshape(n_exp, n_pix)
     params = _LinearParams(
         t=t.astype(dtype).reshape(-1, 1), thr=dtype.type(margin * white), min_sig=dtype.type(min_sig),
         inv_g=None if gain is None else dtype.type(1.0 / gain),
         const=dtype.type(max(read_dn2 + (1.0 / 12.0 if y.dtype.kind in "ui" else 0.0), 1e-6)),  # > 0: no 0/0
         n_iter=int(n_iter),
         dtype=dtype)
+    return black, params
+
+
+def _check_dark(dark: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """``dark`` as an array, checked: numeric, finite, one frame per exposure of ``y`` (or one for all)."""
+    n_exp = y.shape[0]
+    d = np.asarray(dark)
+    if d.dtype.kind not in "uif":
+        raise ValueError(f"dark must be numeric, got dtype {d.dtype}")
+    _check_finite(d, "dark")
+    if d.ndim == y.ndim and d.shape[0] not in (1, n_exp):
+        raise ValueError(f"dark has {d.shape[0]} exposures along axis 0, the frames {n_exp}: give one "
+                         f"dark frame per exposure (dark_per_exposure makes them)")
+    try:
+        if np.broadcast_shapes(d.shape, y.shape) != y.shape:
+            raise ValueError
+    except ValueError:
+        raise ValueError(f"dark has shape {d.shape}, the frames {y.shape}: give one dark frame per "
+                         f"exposure (n_exp, ...) or use dark_per_exposure") from None
+    return d
+
+
+#: Samples (exposures x pixels) merged at once by :func:`merge_linear`: a block's temporaries stay in
+#: the CPU cache (several times faster than whole-frame numpy passes).
+_BLOCK_SAMPLES: int = 1 << 16
+
+
+def _merge_linear_blocks(y: np.ndarray, black: np.ndarray, d: np.ndarray | None,
+                         params: _LinearParams) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`merge_linear` over blocks of pixels that stay in the CPU cache (every step is per pixel)."""
+    n_exp, pix_shape, dtype = y.shape[0], y.shape[1:], params.dtype
+    n_pix = int(np.prod(pix_shape, dtype=np.int64))
+    y2 = y.reshape(n_exp, n_pix)
+    b2 = black.reshape(1, -1) if black.ndim == 0 else np.broadcast_to(black, pix_shape).reshape(1, n_pix)
+    d2 = None if d is None else np.broadcast_to(d, y.shape).reshape(n_exp, n_pix)
     rate = np.empty(n_pix, dtype=dtype)
     valid = np.empty(n_pix, dtype=bool)
     step = max(1, _BLOCK_SAMPLES // n_exp)
@@ -351,11 +373,6 @@ def merge_linear(frames: np.ndarray, exposure_time: Any, *, black_level: float |
         _merge_linear_block(y2[:, lo:hi], bb, None if d2 is None else d2[:, lo:hi], params,
                             rate[lo:hi], valid[lo:hi])
     return rate.reshape(pix_shape), valid.reshape(pix_shape)
-
-
-#: Samples (exposures x pixels) merged at once by :func:`merge_linear`: a block's temporaries stay in
-#: the CPU cache (several times faster than whole-frame numpy passes).
-_BLOCK_SAMPLES: int = 1 << 16
 
 
 class _LinearParams(NamedTuple):

@@ -3,8 +3,8 @@
 The LEDs of a dome differ in intensity and colour, and the camera's colour
 filters are not the target colour space. Before rectified radiance maps are
 stacked into a BTF they are "corrected radiometrically using the calibration
-data obtained beforehand" (thesis §1.1.3, line 174; VMV paper 4.1, line 856:
-"We use LED calibration data in order to account for variations in the LEDs'
+data obtained beforehand" (thesis §1.1.3; App. "Multiplexed acquisition"
+§4.1 and VMV paper §5.1: "We use LED calibration data in order to account for variations in the LEDs'
 spectra").
 
 * **LED calibration.** A flat Lambertian white standard of albedo ``a`` lit
@@ -30,8 +30,8 @@ multiplexed capture is demultiplexed first).
 
 References
 ----------
-.. [1] The thesis (``reference/000_07a399c75a6bdea8.txt``), §1.1.3 (line 174)
-   and App. "Multiplexed acquisition" 4.1 (line 856).
+.. [1] The thesis, §1.1.3, and App. "Multiplexed acquisition" (paper 2) §4.1;
+   VMV paper §5.1.
 .. [2] C. Schwartz, R. Sarlette, M. Weinmann, M. Rump and R. Klein, "Design
    and implementation of practical bidirectional texture function
    measurement devices focusing on the developments at the University of

@@ -3,7 +3,7 @@
 Each view ``(t, c)`` sees the sample plane through a homography ``H``
 (sample-plane metres ``(x, y, 1)`` -> image pixel ``(col, row, 1)``,
 :meth:`btfcore.dome.Device.homography`). Rectification samples the
-image on the texel grid of the sample square (DESIGN stage 5; thesis 1.1.3):
+image on the texel grid of the sample square (stage 5; thesis §1.1.3):
 texel ``(i, j)`` of an ``(h, w)`` texture is centred at
 ``x = ((j + 0.5) / w - 0.5) s``, ``y = (0.5 - (i + 0.5) / h) s`` (row 0 is
 ``+y``), and covers the square of side ``s / w`` by ``s / h`` around it.

@@ -3,7 +3,7 @@
 A dome measures each texel at the light/view pairs its geometry gives; a
 turntable dome rotates the lights with the sample, so the light directions
 differ from view to view. Rendering, compression and the model database need
-one common sampling for every BTF (thesis §1.1.2, line 134: "Computing the
+one common sampling for every BTF (thesis §1.1.2: "Computing the
 weights is much more convenient when for all x the sampled omega_{i,o} are
 the same"), for example the UBO2014 151 x 151 set (:func:`ubo2014_directions`).
 
@@ -13,7 +13,7 @@ The thesis interpolates a BTF value from 3 x 3 measured pairs,
           B(\\omega_i^{(i)}, \\omega_o^{(j)}, x),
 
 with weights from 2D Delaunay triangulations of the sampled directions
-(§1.1.2, line 132). Here the 2D coordinates are the parabolic map of the
+(§1.1.2). Here the 2D coordinates are the parabolic map of the
 upper hemisphere and :math:`\\lambda_{ij} = \\mu_j \\lambda^{(j)}_i`: the
 barycentric weights :math:`\\mu_j` of the target view in the triangulation of
 the source views, times the barycentric weights :math:`\\lambda^{(j)}_i` of
@@ -27,7 +27,7 @@ See ``docs/demultiplex-resample.md``.
 
 References
 ----------
-.. [1] The thesis (``reference/000_07a399c75a6bdea8.txt``), §1.1.2, lines 130-134.
+.. [1] The thesis, §1.1.2 (Appearance models: resampling and the 3 x 3 interpolation).
 .. [2] W. Heidrich and H.-P. Seidel, "View-independent environment maps",
    Graphics Hardware 1998 (the parabolic map).
 .. [3] M. Weinmann, J. Gall and R. Klein, "Material classification based on
@@ -293,7 +293,7 @@ def barycentric_weights(src_dirs: np.ndarray, dst_dirs: np.ndarray) -> sp.csr_ma
     The source directions are triangulated (Delaunay) in parabolic-map
     coordinates :math:`p(d)` (:func:`parabolic_map`), as the thesis does
     with "2D Delaunay triangulation of the corresponding sample points"
-    (§1.1.2, line 134). A target :math:`q = p(d)` inside triangle
+    (§1.1.2). A target :math:`q = p(d)` inside triangle
     :math:`(a, b, c)` gets its barycentric coordinates,
 
     .. math:: q = \\lambda_a a + \\lambda_b b + \\lambda_c c, \\quad
@@ -391,7 +391,7 @@ def resample_weights(
 
        .. math:: W_{(l, v), (i, j)} = \\mu_j(v)\\, \\lambda^{(j)}_i(l)
 
-       (thesis §1.1.2, line 132, with :math:`\\lambda_{ij}` factorised).
+       (thesis §1.1.2, with :math:`\\lambda_{ij}` factorised).
 
     When the source is a Cartesian product (every view has the same lights),
     step 2 is computed once and ``W`` is, up to the order of rows and

@@ -1,4 +1,4 @@
-"""One view of a capture to rectified linear textures: DESIGN stages 2-6 composed.
+"""One view of a capture to rectified linear textures: stages 2-6 composed (docs/architecture.md, "Stages").
 
 The chain for one (turntable, camera) view, thesis §1.1.3:
 
@@ -104,8 +104,8 @@ def process_view(frames: np.ndarray, exposure_time: np.ndarray, patterns: np.nda
         here from whole frames.
     out : (n_illum, h, w, 3) ndarray of float32, optional
         Buffer for the rectified textures, reused across views by the caller
-        (first-touch of fresh memory is slow, DESIGN §5); a single-LED
-        capture's result is returned in it.
+        (first-touch of fresh memory is slow, docs/architecture.md,
+        "Pitfalls"); a single-LED capture's result is returned in it.
 
     Returns
     -------

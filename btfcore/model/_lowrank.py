@@ -2,7 +2,7 @@
 
 Used by :mod:`btfcore.model.empca`, :mod:`btfcore.model.truncated_svd` and
 :mod:`btfcore.model.eigenspace_merging`. A BTF matrix ``B`` is ``(n_lv, n_tx)``
-(DESIGN §2) and reaches these modules as a *block source*: a callable that
+(docs/architecture.md, "Matrix convention") and reaches these modules as a *block source*: a callable that
 returns a fresh iterator over column blocks ``B[:, cols_j]`` of shape
 ``(n_lv, m_j)`` on every call, so that iterative methods can make several
 passes without holding ``B`` (the tasks layer streams Zarr chunks through

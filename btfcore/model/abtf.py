@@ -15,14 +15,13 @@ patches, all texels weighted equally" (§4.1.2).
   patched band by band with the same result as a whole.
 
 A BTF matrix ``B`` of shape ``(n_lv, h * w * C)`` (columns flattened
-row, column, channel, DESIGN §2) is passed as ``B.reshape(n_lv, h, w, C)``.
+row, column, channel: docs/architecture.md, "Matrix convention") is passed as ``B.reshape(n_lv, h, w, C)``.
 
 References
 ----------
-.. [1] The thesis (``reference/000_07a399c75a6bdea8.txt``): App. paper 1,
-   D. den Brok, H. C. Steinhausen, M. B. Hullin and R. Klein, "Patch-based
-   sparse reconstruction of material BTFs", Journal of WSCG 22, 2014, §3.3
-   (line 568), §3.4 (line 578) and §4.1.2 (line 630).
+.. [1] The thesis, App. paper 1 (den Brok et al.): D. den Brok, H. C.
+   Steinhausen, M. B. Hullin and R. Klein, "Patch-based sparse reconstruction
+   of material BTFs", Journal of WSCG 22, 2014, §3.3, §3.4 and §4.1.2.
 .. [2] M. Varma and A. Zisserman, "A statistical approach to material
    classification using image patch exemplars", IEEE TPAMI 31(11), 2009
    (3 x 3 patches).

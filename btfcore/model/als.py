@@ -12,14 +12,29 @@ into one basis for the database by an SVD (eq. 9).
 The per-texel and per-row solves are batched as matrix products: the normal
 matrices of all texels, :math:`G_x = U^T \\operatorname{diag}(W_{:,x})^2 U`,
 are one GEMM of :math:`(W^{\\odot 2})^T` against the products of pairs of
-``U``'s columns, followed by one batched Cholesky solve (DESIGN §5: the GEMM
-runs near the machine's peak; the small solves are the rest).
+``U``'s columns, followed by one batched Cholesky solve (docs/architecture.md,
+"Pitfalls": the GEMM runs near the machine's peak; the small solves are the rest).
+
+Out of core (:func:`als_basis` on a block source): ``V`` is needed only
+within the pass that solves it (for the objective and the rows' systems),
+so for a block source it is not kept: the working memory is one block (on
+the device) and its chunk, independent of ``n_tx``, and the result's
+``sigma`` comes from row norms of ``V`` accumulated in the last pass. An
+in-memory ``D`` keeps ``V`` (``c * n_tx`` values) and returns it. For the
+same data, chunks and ``floor``, a block source gives the in-memory result
+(same chunks, same order of accumulation). The default ``floor`` of a block
+source is estimated from every block's non-zero ``|D|``: all of them when
+the block has at most :data:`FLOOR_SAMPLE`, else that many drawn with a
+fixed seed and weighted by the entries they stand for; the weighted median
+is the exact one when no block was subsampled. The floor only sets the
+scale below which weights stop growing (1e-3 of a typical value), which
+needs no more precision than such a sample gives (2e-4 relative on the
+tests' data).
 
 References
 ----------
-.. [1] The thesis (``reference/000_07a399c75a6bdea8.txt``), paper 4
-   ("sparse and multiplexed acquisition"), §4.1-4.2, eqs. (5)-(9), lines
-   1300-1345.
+.. [1] The thesis, App. paper 4 ("Rapid material capture through sparse and
+   multiplexed measurements"), §4.1-4.2, eqs. (5)-(9).
 .. [2] R. Ruiters, M. Rump and R. Klein, "Parallelized matrix factorization
    for fast BTF compression", EGPGV 2009 (relative-error weights).
 .. [3] T. G. Kolda and B. W. Bader, "Tensor decompositions and
@@ -454,7 +469,7 @@ def als_basis(
         Weight floor of the default weights (absolute, > 0); not with ``W``.
         Default ``WEIGHT_FLOOR_FRACTION`` times the median non-zero
         ``|D|``: exact for an in-memory ``D``; for a block source estimated
-        in a first pass (:data:`FLOOR_SAMPLE`, Notes). Passing it saves that
+        in a first pass (:data:`FLOOR_SAMPLE`, module docstring). Passing it saves that
         pass.
 
     Returns
@@ -489,11 +504,9 @@ def als_basis(
         U_{l,:} = (V \\operatorname{diag}(W_{l,:})^2 V^T)^{-1}
                   V \\operatorname{diag}(W_{l,:})^2 D_{l,:}^T,
 
-    so the objective never increases. For a chunk of texels, the packed
-    normal matrices are :math:`(W^{\\odot 2})^T P` with ``P`` the
-    :math:`c(c+1)/2` products :math:`U_{:,i} \\odot U_{:,j}, i \\le j` (one
-    GEMM), the right-hand sides :math:`(W^{\\odot 2} \\odot D)^T U` (another),
-    and the systems are solved by one batched Cholesky factorisation; the
+    so the objective never increases. A chunk of texels is solved with two
+    GEMMs and one batched Cholesky factorisation (module docstring; the
+    right-hand sides are :math:`(W^{\\odot 2} \\odot D)^T U`); the
     rows' systems are accumulated over the same chunks from the new ``V``
     (so each iteration reads ``D`` once). A normal matrix that is not
     numerically positive definite (a zero column of ``W``; ``c`` above the
@@ -502,24 +515,22 @@ def als_basis(
     ``itemsize * (3 n_lv + 2.5 c^2)`` bytes a texel, within
     ``chunk_bytes``) plus ``n_lv * c(c+1)/2`` accumulated entries for
     the rows' systems. The method is not guaranteed to find the global
-    minimum (paper 4, §4.2).
-
-    Out of core: ``V`` is needed only within the pass that solves it (for
-    the objective and the rows' systems), so for a block source it is not
-    kept: the working memory is one block (on the device) and its chunk,
-    independent of ``n_tx``, and the result's ``sigma`` comes from row norms
-    of ``V`` accumulated in the last pass. An in-memory ``D`` keeps ``V``
-    (``c * n_tx`` values) and returns it. For the same data, chunks and
-    ``floor``, a block source gives the in-memory result (same chunks, same
-    order of accumulation). The default ``floor`` of a block source is
-    estimated from every block's non-zero ``|D|``: all of them when the
-    block has at most :data:`FLOOR_SAMPLE`, else that many drawn with a
-    fixed seed and weighted by the entries they stand for; the weighted
-    median is the exact one when no block was subsampled. The floor only
-    sets the scale below which weights stop growing (1e-3 of a typical
-    value), which needs no more precision than such a sample gives (2e-4
-    relative on the tests' data).
+    minimum (paper 4, §4.2). A block source is fitted out of core as the
+    module docstring describes (the in-memory result, without ``V``).
     """
+    source, a, W, shape, raw_dtype, floor = _checked_inputs(D, c, W, n_iter, tol, chunk_texels, chunk_bytes, floor)
+    c = int(c)
+    ops = _ops(backend, device, _float_dtype(dtype, raw_dtype))
+    data = _InMemory(ops, a, W, floor, c) if source is None else _Streamed(ops, source, shape, floor, c)
+    U, sweep, history, converged = _alternate(ops, data, c, n_iter, tol, seed, chunk_texels, chunk_bytes)
+    return _als_result(ops, data, U, sweep, history, converged)
+
+
+def _checked_inputs(
+    D: Any, c: Any, W: Any, n_iter: int, tol: float, chunk_texels: int | None, chunk_bytes: int, floor: float | None,
+) -> tuple[BlockSource | None, np.ndarray | None, np.ndarray | None, tuple[int, int | None], np.dtype, float | None]:
+    """:func:`als_basis`'s inputs, checked: ``(source, a, W, (n_lv, n_tx), dtype of D, floor)``; ``source`` is
+    None for an in-memory ``D`` (then ``a`` is it), ``a`` None for a block source (``n_tx`` None when unread)."""
     if n_iter < 0 or not tol >= 0:
         raise ValueError(f"n_iter must be >= 0 and tol >= 0, got n_iter={n_iter!r}, tol={tol!r}")
     if chunk_bytes < 1:
@@ -537,11 +548,11 @@ def als_basis(
             raise ValueError("W needs an in-memory D: a block source is weighted by relative_error_weights(block, "
                              "floor) block by block")
         n_lv, n_tx, raw_dtype, floor = _scan_blocks(source, floor)
+        a = None
     else:
         a = _check_matrix(D, "D")
         (n_lv, n_tx), raw_dtype = a.shape, a.dtype
     _check_c(c, n_lv, n_tx)
-    c = int(c)
     if W is not None:
         W = _check_matrix(W, "W")
         if W.shape != a.shape:
@@ -550,33 +561,63 @@ def als_basis(
         if neg.size:
             i, j = (int(v) for v in neg[0])
             raise ValueError(f"W must be non-negative: W[{i}, {j}] = {float(W[i, j])!r} ({len(neg)} negative)")
-    dt = _float_dtype(dtype, raw_dtype)
-    ops = _ops(backend, device, dt)
+    return source, a, W, (n_lv, n_tx), raw_dtype, floor
 
-    if source is None:
-        floor = None if W is not None else floor or _default_floor(np.abs(a))
-        norm_sq = float(np.einsum("ij,ij->", a, a, dtype=np.float64))
-        Dx = ops.asarray(a.astype(dt, copy=False))
-        Wx = None if W is None else ops.asarray(W)
-        V = ops.zeros((c, n_tx))
+
+class _InMemory:
+    """An in-memory ``D`` (and ``W``) on the device, for :func:`_alternate`; keeps ``V`` (c, n_tx)."""
+
+    def __init__(self, ops: _NumpyOps | _TorchOps, a: np.ndarray, W: np.ndarray | None, floor: float | None,
+                 c: int) -> None:
+        self.n_lv, self.n_tx = a.shape
+        self.floor = None if W is not None else floor or _default_floor(np.abs(a))
+        self.norm_sq = float(np.einsum("ij,ij->", a, a, dtype=np.float64))
+        self.Dx = ops.asarray(a.astype(ops.dtype, copy=False))
+        self.Wx = None if W is None else ops.asarray(W)
+        self.V = ops.zeros((c, self.n_tx))
+
+    def v_pass(self, sweep: _Sweep, it: int) -> None:
+        """One :class:`_Sweep` over all of ``D``, writing ``V``."""
+        sweep.block(self.Dx, self.Wx, self.V)
+
+
+class _Streamed:
+    """A block source for :func:`_alternate`, read once per pass (one block on the device at a time); ``V`` is
+    not kept (None), and ``norm_sq`` and ``n_tx`` are known from the first pass on."""
+
+    def __init__(self, ops: _NumpyOps | _TorchOps, source: BlockSource, shape: tuple[int, int | None],
+                 floor: float | None, c: int) -> None:
+        self.ops, self.source, self.floor, self.c = ops, source, floor, c
+        self.n_lv, self.n_tx = shape
+        self.norm_sq: float | None = None
+        self.V = None
+
+    def v_pass(self, sweep: _Sweep, it: int) -> None:
+        """One :class:`_Sweep` over the blocks; the first pass also counts the columns and checks ``c``."""
+        ops, dt = self.ops, self.ops.dtype
+        pass_norm_sq, cols = for_each_block(
+            self.source, self.n_lv, lambda b: sweep.block(ops.asarray(b.astype(dt, copy=False))), self.n_tx)
+        if it == 0:
+            self.norm_sq, self.n_tx = pass_norm_sq, cols
+            _check_c(self.c, self.n_lv, self.n_tx)
+
+
+def _alternate(ops: _NumpyOps | _TorchOps, data: _InMemory | _Streamed, c: int, n_iter: int, tol: float, seed: int,
+               chunk_texels: int | None, chunk_bytes: int) -> tuple[Any, _Sweep, list[float], bool]:
+    """Alternating least squares from a seeded random ``U`` (paper 4, eqs. 7 and 8):
+    ``(U, the last V-pass, the objective of every pass, converged)``."""
+    n_lv = data.n_lv
     iu_np, ju_np = np.triu_indices(c)
     iu, ju = ops.asarray(iu_np), ops.asarray(ju_np)
-    row_step = chunk_texels or _chunk_size(len(iu_np) + 2 * c * c, dt.itemsize, n_lv, chunk_bytes)
+    row_step = chunk_texels or _chunk_size(len(iu_np) + 2 * c * c, ops.dtype.itemsize, n_lv, chunk_bytes)
 
     U = ops.asarray(np.random.default_rng(seed).uniform(-0.5, 0.5, (n_lv, c)))
     bufs = [ops.zeros((0,))] * 3
     history: list[float] = []
     converged = False
     for it in range(n_iter + 1):
-        sweep = _Sweep(ops, U, iu, ju, floor, chunk_texels, chunk_bytes, bufs, u_step=it < n_iter)
-        if source is None:
-            sweep.block(Dx, Wx, V)
-        else:
-            pass_norm_sq, cols = for_each_block(
-                source, n_lv, lambda b: sweep.block(ops.asarray(b.astype(dt, copy=False))), n_tx)
-            if it == 0:
-                norm_sq, n_tx = pass_norm_sq, cols
-                _check_c(c, n_lv, n_tx)
+        sweep = _Sweep(ops, U, iu, ju, data.floor, chunk_texels, chunk_bytes, bufs, u_step=it < n_iter)
+        data.v_pass(sweep, it)                                    # eq. (7)
         history.append(sweep.obj)
         if it == n_iter:
             break
@@ -586,9 +627,16 @@ def als_basis(
                 converged = True
                 break
         U = _solve_packed(ops, sweep.Gr, sweep.Rr, iu, ju, c, row_step)   # eq. (8)
+    return U, sweep, history, converged
 
+
+def _als_result(ops: _NumpyOps | _TorchOps, data: _InMemory | _Streamed, U: Any, sweep: _Sweep,
+                history: list[float], converged: bool) -> ALSResult:
+    """The fit as an :class:`ALSResult`: unit columns of ``U`` and rows of ``V``, their norms' products as
+    ``sigma``, in decreasing order."""
+    dt = ops.dtype
     U_np = ops.numpy(U).astype(dt, copy=False)
-    V_np = None if source is not None else ops.numpy(V).astype(dt, copy=False)
+    V_np = None if data.V is None else ops.numpy(data.V).astype(dt, copy=False)
     nu = np.linalg.norm(U_np, axis=0)
     nv = np.sqrt(ops.numpy(sweep.nv2)).astype(dt) if V_np is None else np.linalg.norm(V_np, axis=1)
     order = np.argsort(-(nu * nv), kind="stable")
@@ -602,8 +650,8 @@ def als_basis(
         converged=converged,
         backend=ops.name,
         device=ops.device,
-        norm_sq=norm_sq,
-        floor=floor,
+        norm_sq=data.norm_sq,
+        floor=data.floor,
     )
 
 

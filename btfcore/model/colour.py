@@ -7,28 +7,33 @@
   measured HDR RGB data to YUV color space, dividing the U and V values by
   the corresponding Y value and applying log to the Y values" (paper 1,
   §3.1).
+* **Luminance** (:func:`luminance`, :data:`REC709_LUMA`): relative luminance
+  Y of linear RGB with the ITU-R BT.709 (sRGB primaries) weights, the one
+  definition used by the simulator, the renderer, the reports and the
+  ingest's error against the truth.
 * **Nielsen et al.'s mapping** (:func:`nielsen_map`, :func:`nielsen_unmap`,
   with :func:`cos_weight` and :func:`reference_abrdf`): the log of each
   ABRDF relative to the median ABRDF, cosine-weighted (paper 4, eq. (3)).
 
 Colour functions take channels on the last axis, ``(..., 3)``; a BTF matrix
-``B`` of shape ``(n_lv, n_tx * 3)`` (columns texel-major, channel fastest,
-DESIGN §2) is passed as ``B.reshape(n_lv, -1, 3)``, a view. Every function
+``B`` of shape ``(n_lv, n_tx * 3)`` (columns texel-major, channel fastest:
+docs/architecture.md, "Matrix convention") is passed as ``B.reshape(n_lv, -1, 3)``, a view. Every function
 keeps float32 as float32 and computes everything else in float64, and refuses
 NaN and Inf with the index of the first one.
 
 References
 ----------
-.. [1] The thesis (``reference/000_07a399c75a6bdea8.txt``): App. paper 1,
-   D. den Brok, H. C. Steinhausen, M. B. Hullin and R. Klein, "Patch-based
-   sparse reconstruction of material BTFs", Journal of WSCG 22, 2014, §3.1
-   (line 552); App. paper 4, D. den Brok, M. Weinmann and R. Klein, "Rapid
-   material capture through sparse and multiplexed measurements", Computers
-   & Graphics 73, 2018, eq. (3) (lines 1280-1288).
+.. [1] The thesis, App. paper 1 (den Brok et al.): D. den Brok, H. C.
+   Steinhausen, M. B. Hullin and R. Klein, "Patch-based sparse reconstruction
+   of material BTFs", Journal of WSCG 22, 2014, §3.1; App. paper 4, D. den
+   Brok, M. Weinmann and R. Klein, "Rapid material capture through sparse and
+   multiplexed measurements", Computers & Graphics 73, 2018, §3.3, eq. (3).
 .. [2] J. B. Nielsen, H. W. Jensen and R. Ramamoorthi, "On optimal, minimal
    BRDF sampling for reflectance acquisition", ACM TOG 34(6), 2015.
 .. [3] ITU-R Recommendation BT.601 (luma weights); OpenCV ``cvtColor``
    documentation, "RGB <-> YUV" (the U and V scale factors 0.492, 0.877).
+.. [4] ITU-R Recommendation BT.709, item 3.2 (relative luminance of linear
+   R, G, B with sRGB primaries: 0.2126, 0.7152, 0.0722).
 """
 
 from __future__ import annotations
@@ -38,11 +43,13 @@ import numpy as np
 __all__ = [
     "LOG_YUV_EPS",
     "NIELSEN_EPS",
+    "REC709_LUMA",
     "RGB_FROM_YUV",
     "YUV_FROM_RGB",
     "cos_weight",
     "from_log_yuv",
     "log_luminance",
+    "luminance",
     "nielsen_map",
     "nielsen_unmap",
     "reference_abrdf",
@@ -55,12 +62,32 @@ __all__ = [
 YUV_FROM_RGB = np.array([[0.299, 0.587, 0.114],
                          [-0.492 * 0.299, -0.492 * 0.587, 0.492 * (1.0 - 0.114)],
                          [0.877 * (1.0 - 0.299), -0.877 * 0.587, -0.877 * 0.114]])
+#: Relative luminance weights of linear (R, G, B), ITU-R BT.709 [4] (read-only).
+REC709_LUMA = np.array([0.2126, 0.7152, 0.0722])
+REC709_LUMA.setflags(write=False)
 #: Exact inverse of :data:`YUV_FROM_RGB` (its first column is all ones: R = G = B = Y where U = V = 0).
 RGB_FROM_YUV = np.linalg.inv(YUV_FROM_RGB)
 #: Default floor of Y in :func:`to_log_yuv`, absolute, in the BTF's units (calibrated BTF: reflectance * cos).
 LOG_YUV_EPS = 1e-4
-#: Nielsen et al.'s offset and cosine floor (paper 4, line 1288).
+#: Nielsen et al.'s offset and cosine floor (paper 4 §3.3, after eq. (3)).
 NIELSEN_EPS = 1e-4
+
+
+def luminance(rgb: np.ndarray) -> np.ndarray:
+    """Relative luminance of linear RGB, ``rgb @ REC709_LUMA`` (ITU-R BT.709 [4]).
+
+    Parameters
+    ----------
+    rgb : (..., 3) array_like
+        Linear RGB, channels on the last axis.
+
+    Returns
+    -------
+    y : (...) ndarray
+        :math:`Y = 0.2126 R + 0.7152 G + 0.0722 B`, in numpy's promotion of the
+        input's dtype with float64 (float32 input gives float64).
+    """
+    return np.asarray(rgb) @ REC709_LUMA
 
 
 # --------------------------------------------------------------------------- validation

@@ -20,8 +20,8 @@ References
 ----------
 .. [1] P. Hall, D. Marshall and R. Martin, "Merging and splitting eigenspace
    models", IEEE TPAMI 22(9), 2000.
-.. [2] The thesis (``reference/000_07a399c75a6bdea8.txt``), paper 1 §4.1
-   (lines 636-642) and paper 4 eq. (9) (line 1338).
+.. [2] The thesis, App. paper 1 (den Brok et al.) §4.1.1 (eigenspaces merged
+   per cluster, then globally) and paper 4 §4.2, eq. (9).
 """
 
 from __future__ import annotations

@@ -20,8 +20,8 @@ once for this module and the randomized SVD of :mod:`btfcore.model.truncated_svd
 References
 ----------
 .. [1] S. Roweis, "EM algorithms for PCA and SPCA", NIPS 10, 1998.
-.. [2] The thesis (``reference/000_07a399c75a6bdea8.txt``), paper 1 §4.1
-   (lines 630-650): 200 eigen-ABRDFs for log Y and 100 each for U/Y and V/Y.
+.. [2] The thesis, App. paper 1 (den Brok et al.) §4.1.1: 200 eigen-ABRDFs
+   for log Y and 100 each for U/Y and V/Y.
 .. [3] N. Halko, P.-G. Martinsson and J. A. Tropp, "Finding structure with
    randomness", SIAM Review 53(2), 2011, §4.5 (subspace iteration) and
    §5.5 (Rayleigh-Ritz).
@@ -109,7 +109,7 @@ def block_power_iteration(
     pass. The M-step's :math:`S T^{-1}` only mixes the columns of S, so the
     next C is the orthonormalised S (which also works when the data's rank
     is below ``n_basis``); re-orthonormalising every pass keeps float32
-    products accurate (DESIGN §5). At convergence the result is the Ritz
+    products accurate (docs/architecture.md, "Pitfalls"). At convergence the result is the Ritz
     basis of the last pass' C.
     """
     if criterion not in CRITERIA:

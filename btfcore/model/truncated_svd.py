@@ -1,7 +1,7 @@
 """Truncated SVD of a BTF matrix streamed over column blocks: Gram route, randomized, EM-PCA.
 
-The per-material bases of the model database (DESIGN §2 stage 8; thesis
-paper 1, §4.1) are the leading left singular vectors ``U`` and values
+The per-material bases of the model database (stage 8, docs/architecture.md,
+"Stages"; paper 1 (den Brok et al.), §4.1) are the leading left singular vectors ``U`` and values
 ``sigma`` of ``B`` (``(n_lv, n_tx)``, rows light/view pairs). Three methods
 read ``B`` as column blocks, never whole, and accumulate in float64:
 
@@ -11,7 +11,8 @@ read ``B`` as column blocks, never whole, and accumulate in float64:
 * ``'randomized'``: Halko et al.'s range finder with ``oversample`` extra
   vectors (default ``max(10, k // 2)``) and ``n_iter`` power iterations
   (default 3), QR re-orthonormalised every pass
-  (DESIGN §5: plain power iterations lose accuracy in float32).
+  (docs/architecture.md, "Pitfalls": plain power iterations lose accuracy in
+  float32).
 * ``'empca'``: :func:`btfcore.model.empca.empca`, iterated to a tolerance.
 
 ``'auto'`` picks ``'gram'`` when ``G`` fits ``memory_bytes`` and its pass costs
@@ -24,7 +25,7 @@ References
    randomness: probabilistic algorithms for constructing approximate matrix
    decompositions", SIAM Review 53(2), 2011, Alg. 4.4 and 5.1.
 .. [2] S. Roweis, "EM algorithms for PCA and SPCA", NIPS 10, 1998.
-.. [3] The thesis (``reference/000_07a399c75a6bdea8.txt``), paper 1 §4.1.
+.. [3] The thesis, App. paper 1 (den Brok et al.), §4.1.
 """
 
 from __future__ import annotations

@@ -1,8 +1,9 @@
 """Rendering a BTF on simple geometry under point and environment light.
 
-Stage 12 (*evaluate*, DESIGN §2) compares BTFs by "PSNR of renderings under
-point and environment light". This module renders a tabulated BTF (rows =
-light/view pairs, DESIGN §2 "Matrix convention") on a sphere, a cylinder or
+Stage 12 (*evaluate*, docs/architecture.md, "Stages") compares BTFs by "PSNR
+of renderings under point and environment light". This module renders a
+tabulated BTF (rows = light/view pairs, docs/architecture.md, "Matrix
+convention") on a sphere, a cylinder or
 a plane seen by an orthographic or pinhole camera:
 
 1. per pixel, the first hit of the camera ray, its normal, a tangent frame
@@ -28,7 +29,7 @@ See ``docs/rendering.md``.
 
 References
 ----------
-.. [1] The thesis (``reference/000_07a399c75a6bdea8.txt``), §1.1.2 (BTF
+.. [1] The thesis, §1.1.2 (BTF
    interpolation from 3 x 3 measured light/view pairs).
 .. [2] W. Heidrich and H.-P. Seidel, "View-independent environment maps",
    Graphics Hardware 1998 (the parabolic map used for the triangulations).
@@ -46,6 +47,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from btfcore.capture.resample import DIRECTION_TOL, barycentric_weights, unique_directions
+from btfcore.model.colour import luminance
 from btfcore.render.tonemap import tonemap
 
 __all__ = [
@@ -429,7 +431,7 @@ def env_lights(env: np.ndarray, n_theta: int = 8, n_phi: int = 16, rotation_deg:
         raise ValueError(f"n_theta, n_phi = {n_theta}, {n_phi} must lie in 1..{H} and 1..{W} (the map's shape)")
     dirs, solid = env_directions((H, W), rotation_deg)
     weighted = x * solid[:, None, None]                                 # L dOmega per pixel
-    lum = weighted @ np.array([0.2126, 0.7152, 0.0722])
+    lum = luminance(weighted)
     r0 = np.linspace(0, H, n_theta + 1).round().astype(int)[:-1]
     c0 = np.linspace(0, W, n_phi + 1).round().astype(int)[:-1]
 

@@ -33,6 +33,8 @@ import numpy as np
 from scipy import ndimage
 from skimage.transform import resize
 
+from btfcore.model.colour import luminance
+
 __all__ = [
     "MATERIAL_CLASSES",
     "SOURCE_NAMES",
@@ -195,10 +197,6 @@ def _to_unit(img: np.ndarray) -> np.ndarray:
 def _srgb_to_linear(c: np.ndarray) -> np.ndarray:
     """Decode sRGB-encoded values in [0, 1] to linear reflectance (IEC 61966-2-1)."""
     return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)  # eq. sRGB EOTF
-
-
-def _luminance(rgb: np.ndarray) -> np.ndarray:
-    return rgb @ np.array([0.2126, 0.7152, 0.0722])
 
 
 def _get_source(sources: Mapping[str, np.ndarray], name: str) -> np.ndarray:
@@ -410,7 +408,7 @@ def _wood(rng, shape, sources, params):
         bright = float(rng.uniform(0.7, 1.1))
         tint = _jitter(rng, (1.0, 1.0, 1.0), 0.08)
         albedo = _srgb_to_linear(photo) * bright * np.asarray(tint)
-        lum = _luminance(albedo)
+        lum = luminance(albedo)
         params.update(source="wood_rgb", rgb_fallback=False, crop=crop, brightness=bright, tint=tint)
     else:
         # grey fallback: grass stretched 5x along one axis gives grain-like streaks
@@ -497,7 +495,7 @@ def _stone(rng, shape, sources, params):
         photo, crop = _crop(rng, _get_source(sources, "bricks_rgb"), shape, (0.3, 1.0))
         bright = float(rng.uniform(0.6, 1.0))
         albedo = _srgb_to_linear(photo) * bright
-        relief = _luminance(photo)
+        relief = luminance(photo)
         params.update(source="bricks_rgb", rgb_fallback=False, crop=crop, brightness=bright)
     else:
         relief, crop = _crop(rng, _get_source(sources, src), shape, (0.3, 1.0))

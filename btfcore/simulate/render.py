@@ -420,6 +420,28 @@ def _sky_visibility(horizon: np.ndarray, normal: np.ndarray) -> np.ndarray:
     return np.clip(acc * (2.0 / n_az), 0.0, 1.0)  # eq. V = (dphi / pi) * sum
 
 
+def _normals(h: np.ndarray, horizon: np.ndarray, setup) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Normals at the seen points (``(3, H, W)``, bilinear from central differences of the height field),
+    and the normals and horizons ``(3, n_g)``, ``(n_az, n_g)`` at a regular subsample of the map's pixels."""
+    H, W = h.shape
+    ry = H / W
+    hp1 = np.pad(h, 1, mode="symmetric")
+    dh_dcol = 0.5 * (hp1[1:-1, 2:] - hp1[1:-1, :-2])
+    dh_drow = 0.5 * (hp1[2:, 1:-1] - hp1[:-2, 1:-1])
+    stride = max(1, int(round(math.sqrt(H * W / 4096.0))))
+    o = stride // 2
+    ggx = dh_dcol[o::stride, o::stride].ravel()
+    ggy = -dh_drow[o::stride, o::stride].ravel() * np.float32(ry)
+    ginv = 1.0 / np.sqrt(ggx * ggx + ggy * ggy + 1.0)
+    grid_normal = np.stack([-ggx * ginv, -ggy * ginv, ginv]).astype(np.float32)
+    grid_horizon = np.ascontiguousarray(horizon[:, o::stride, o::stride].reshape(horizon.shape[0], -1))
+    gx = _gather(dh_dcol, setup)  # dh/dx (x: +col, pitch units)
+    gy = -_gather(dh_drow, setup) * np.float32(ry)  # dh/dy (y: -row)
+    inv = 1.0 / np.sqrt(gx * gx + gy * gy + 1.0)
+    normal = np.stack([-gx * inv, -gy * inv, inv]).astype(np.float32)  # eq. n ~ (-h_x, -h_y, 1)
+    return normal, grid_normal, grid_horizon
+
+
 def prepare_view(
     maps: MaterialMaps,
     view_dir: np.ndarray,
@@ -495,21 +517,7 @@ def prepare_view(
     hit_col = jj + t * v[0]
     hit_height = (z_ref + t * v[2]).astype(np.float32)
     setup = _bilinear_setup(hit_row, hit_col, H, W)
-
-    hp1 = np.pad(h, 1, mode="symmetric")
-    dh_dcol = 0.5 * (hp1[1:-1, 2:] - hp1[1:-1, :-2])
-    dh_drow = 0.5 * (hp1[2:, 1:-1] - hp1[:-2, 1:-1])
-    stride = max(1, int(round(math.sqrt(H * W / 4096.0))))
-    o = stride // 2
-    ggx = dh_dcol[o::stride, o::stride].ravel()
-    ggy = -dh_drow[o::stride, o::stride].ravel() * np.float32(ry)
-    ginv = 1.0 / np.sqrt(ggx * ggx + ggy * ggy + 1.0)
-    grid_normal = np.stack([-ggx * ginv, -ggy * ginv, ginv]).astype(np.float32)
-    grid_horizon = np.ascontiguousarray(horizon[:, o::stride, o::stride].reshape(horizon.shape[0], -1))
-    gx = _gather(dh_dcol, setup)  # dh/dx (x: +col, pitch units)
-    gy = -_gather(dh_drow, setup) * np.float32(ry)  # dh/dy (y: -row)
-    inv = 1.0 / np.sqrt(gx * gx + gy * gy + 1.0)
-    normal = np.stack([-gx * inv, -gy * inv, inv]).astype(np.float32)  # eq. n ~ (-h_x, -h_y, 1)
+    normal, grid_normal, grid_horizon = _normals(h, horizon, setup)
 
     albedo = np.clip(_gather(maps.albedo, setup), 0.0, 1.0).astype(np.float32)
     rough = np.clip(_gather(maps.roughness, setup), 1e-3, 1.0).astype(np.float32)
@@ -637,101 +645,135 @@ def shade(view: SurfaceView, light_dirs: np.ndarray, out: np.ndarray | None = No
     elif out.shape != (n_l, H, W, 3) or out.dtype != np.float32:
         raise ValueError(f"out must be float32 of shape {(n_l, H, W, 3)}, got {out.dtype} {out.shape}")
 
-    nx, ny, nz = view.normal
-    hz_all = view.horizon
-    n_az = hz_all.shape[0]
-    dphi = 2.0 * math.pi / n_az
-    delta = view.light_radius
-    a2 = view.alpha2
-    a2m1 = a2 - np.float32(1.0)
-    one_m_a2 = np.float32(1.0) - a2
-    a2_pi = a2 / np.float32(np.pi)
-    v = view.view_dir
-    f0 = view.f0.astype(np.float64)
-
-    nl = np.empty((H, W), np.float32)
-    nlv = np.empty((H, W), np.float32)
-    vis = np.empty((H, W), np.float32)
-    t1 = np.empty((H, W), np.float32)
-    t2 = np.empty((H, W), np.float32)
-    buf3 = np.empty((H, W, 3), np.float32)
-
+    b = _ShadeScratch.of(view)
     for k in range(n_l):
         lx, ly, lz = (float(c) for c in L[k])
         o = out[k]
         if lz <= 0.0:
             o.fill(0.0)
             continue
-        # n . l at the local normal
-        np.multiply(nx, np.float32(lx), out=nl)
-        np.multiply(ny, np.float32(ly), out=t1)
-        nl += t1
-        np.multiply(nz, np.float32(lz), out=t1)
-        nl += t1
-        np.maximum(nl, 0.0, out=nl)
-
-        # cast-shadow visibility from the horizon map, soft LED edge
-        elev = math.asin(min(lz, 1.0))
-        pos = (math.atan2(ly, lx) % (2.0 * math.pi)) / dphi
-        k0 = int(math.floor(pos)) % n_az
-        k1 = (k0 + 1) % n_az
-        w = pos - math.floor(pos)
-        if elev - delta >= max(view.horizon_max[k0], view.horizon_max[k1]):
-            np.copyto(nlv, nl)  # light above every horizon: V = 1
-        else:
-            np.multiply(hz_all[k0], np.float32(1.0 - w), out=t1)
-            np.multiply(hz_all[k1], np.float32(w), out=t2)
-            t1 += t2  # horizon, linear in azimuth
-            np.subtract(np.float32(elev), t1, out=t1)
-            t1 *= np.float32(1.0 / delta)
-            np.clip(t1, -1.0, 1.0, out=t1)  # u
-            np.multiply(t1, t1, out=t2)
-            np.subtract(np.float32(1.0), t2, out=t2)
-            np.maximum(t2, 0.0, out=t2)
-            np.sqrt(t2, out=t2)
-            t2 *= t1
-            np.arcsin(t1, out=vis)
-            vis += t2
-            vis *= np.float32(1.0 / math.pi)
-            vis += np.float32(0.5)  # eq. disc fraction above the horizon
-            np.multiply(nl, vis, out=nlv)
+        elev, k0, k1, w = _visible_cosine(view, lx, ly, lz, b)
 
         # diffuse + indirect
-        np.multiply(view.albedo_over_pi, nlv[..., None], out=o)
+        np.multiply(view.albedo_over_pi, b.nlv[..., None], out=o)
         e_bar = _mean_irradiance(view, L[k], elev, k0, k1, w)
         if e_bar > 0.0:
-            np.multiply(view.indirect, np.float32(e_bar), out=buf3)  # eq. one-bounce term
-            o += buf3
+            np.multiply(view.indirect, np.float32(e_bar), out=b.buf3)  # eq. one-bounce term
+            o += b.buf3
 
         if view.has_specular:
-            hv = np.array([lx, ly, lz]) + v
-            hv /= np.linalg.norm(hv)
-            vh = max(float(hv @ v), 0.0)
-            F = (f0 + (1.0 - f0) * (1.0 - vh) ** 5).astype(np.float32)  # eq. Schlick
-            # D
-            np.multiply(nx, np.float32(hv[0]), out=t1)
-            np.multiply(ny, np.float32(hv[1]), out=t2)
-            t1 += t2
-            np.multiply(nz, np.float32(hv[2]), out=t2)
-            t1 += t2
-            np.clip(t1, 0.0, 1.0, out=t1)  # n . h
-            np.multiply(t1, t1, out=t1)
-            t1 *= a2m1
-            t1 += np.float32(1.0)
-            np.multiply(t1, t1, out=t1)
-            np.divide(a2_pi, t1, out=t1)  # eq. D (Trowbridge-Reitz)
-            # Lambda_l
-            np.multiply(nl, nl, out=t2)
-            t2 *= one_m_a2
-            t2 += a2
-            np.sqrt(t2, out=t2)
-            t2 += nl  # eq. Lambda_l
-            np.divide(t1, t2, out=t1)
-            t1 *= view.spec_scale
-            t1 *= nlv
-            np.multiply(t1[..., None], F, out=buf3)
-            o += buf3
+            _add_specular(view, lx, ly, lz, b, o)
     return out
+
+
+@dataclass(frozen=True, eq=False)
+class _ShadeScratch:
+    """Buffers of :func:`shade`, reused for every light, and the light-independent GGX terms of a view."""
+
+    nl: np.ndarray  # (H, W) float32: max(n . l, 0)
+    nlv: np.ndarray  # (H, W) float32: max(n . l, 0) V
+    vis: np.ndarray  # (H, W) float32
+    t1: np.ndarray  # (H, W) float32
+    t2: np.ndarray  # (H, W) float32
+    buf3: np.ndarray  # (H, W, 3) float32
+    a2m1: np.ndarray  # alpha^2 - 1
+    one_m_a2: np.ndarray  # 1 - alpha^2
+    a2_pi: np.ndarray  # alpha^2 / pi
+    f0: np.ndarray  # (3,) float64
+
+    @staticmethod
+    def of(view: SurfaceView) -> _ShadeScratch:
+        """Fresh buffers for ``view``'s texel grid."""
+        H, W = view.shape
+        a2 = view.alpha2
+        a2m1 = a2 - np.float32(1.0)
+        one_m_a2 = np.float32(1.0) - a2
+        a2_pi = a2 / np.float32(np.pi)
+        f0 = view.f0.astype(np.float64)
+        return _ShadeScratch(*(np.empty((H, W), np.float32) for _ in range(5)), np.empty((H, W, 3), np.float32),
+                             a2m1=a2m1, one_m_a2=one_m_a2, a2_pi=a2_pi, f0=f0)
+
+
+def _visible_cosine(view: SurfaceView, lx: float, ly: float, lz: float,
+                    b: _ShadeScratch) -> tuple[float, int, int, float]:
+    """Writes ``max(n . l, 0)`` to ``b.nl`` and that times the LED's visibility ``V`` to ``b.nlv`` for a light
+    above the plane; returns its elevation, the horizon slices ``k0``, ``k1`` around its azimuth and the
+    weight of ``k1``."""
+    nx, ny, nz = view.normal
+    hz_all = view.horizon
+    n_az = hz_all.shape[0]
+    dphi = 2.0 * math.pi / n_az
+    delta = view.light_radius
+    nl, nlv, vis, t1, t2 = b.nl, b.nlv, b.vis, b.t1, b.t2
+    # n . l at the local normal
+    np.multiply(nx, np.float32(lx), out=nl)
+    np.multiply(ny, np.float32(ly), out=t1)
+    nl += t1
+    np.multiply(nz, np.float32(lz), out=t1)
+    nl += t1
+    np.maximum(nl, 0.0, out=nl)
+
+    # cast-shadow visibility from the horizon map, soft LED edge
+    elev = math.asin(min(lz, 1.0))
+    pos = (math.atan2(ly, lx) % (2.0 * math.pi)) / dphi
+    k0 = int(math.floor(pos)) % n_az
+    k1 = (k0 + 1) % n_az
+    w = pos - math.floor(pos)
+    if elev - delta >= max(view.horizon_max[k0], view.horizon_max[k1]):
+        np.copyto(nlv, nl)  # light above every horizon: V = 1
+    else:
+        np.multiply(hz_all[k0], np.float32(1.0 - w), out=t1)
+        np.multiply(hz_all[k1], np.float32(w), out=t2)
+        t1 += t2  # horizon, linear in azimuth
+        np.subtract(np.float32(elev), t1, out=t1)
+        t1 *= np.float32(1.0 / delta)
+        np.clip(t1, -1.0, 1.0, out=t1)  # u
+        np.multiply(t1, t1, out=t2)
+        np.subtract(np.float32(1.0), t2, out=t2)
+        np.maximum(t2, 0.0, out=t2)
+        np.sqrt(t2, out=t2)
+        t2 *= t1
+        np.arcsin(t1, out=vis)
+        vis += t2
+        vis *= np.float32(1.0 / math.pi)
+        vis += np.float32(0.5)  # eq. disc fraction above the horizon
+        np.multiply(nl, vis, out=nlv)
+    return elev, k0, k1, w
+
+
+def _add_specular(view: SurfaceView, lx: float, ly: float, lz: float, b: _ShadeScratch, o: np.ndarray) -> None:
+    """Adds the GGX term ``k_s D F / (Lambda_l Lambda_v) max(n . l, 0) V`` of one light to ``o`` (H, W, 3),
+    from ``b.nl`` and ``b.nlv`` (:func:`_visible_cosine`)."""
+    nx, ny, nz = view.normal
+    v, f0, a2 = view.view_dir, b.f0, view.alpha2
+    nl, nlv, t1, t2, buf3 = b.nl, b.nlv, b.t1, b.t2, b.buf3
+    hv = np.array([lx, ly, lz]) + v
+    hv /= np.linalg.norm(hv)
+    vh = max(float(hv @ v), 0.0)
+    F = (f0 + (1.0 - f0) * (1.0 - vh) ** 5).astype(np.float32)  # eq. Schlick
+    # D
+    np.multiply(nx, np.float32(hv[0]), out=t1)
+    np.multiply(ny, np.float32(hv[1]), out=t2)
+    t1 += t2
+    np.multiply(nz, np.float32(hv[2]), out=t2)
+    t1 += t2
+    np.clip(t1, 0.0, 1.0, out=t1)  # n . h
+    np.multiply(t1, t1, out=t1)
+    t1 *= b.a2m1
+    t1 += np.float32(1.0)
+    np.multiply(t1, t1, out=t1)
+    np.divide(b.a2_pi, t1, out=t1)  # eq. D (Trowbridge-Reitz)
+    # Lambda_l
+    np.multiply(nl, nl, out=t2)
+    t2 *= b.one_m_a2
+    t2 += a2
+    np.sqrt(t2, out=t2)
+    t2 += nl  # eq. Lambda_l
+    np.divide(t1, t2, out=t1)
+    t1 *= view.spec_scale
+    t1 *= nlv
+    np.multiply(t1[..., None], F, out=buf3)
+    o += buf3
 
 
 def render_view(

@@ -422,6 +422,34 @@ class BracketReport(NamedTuple):
     underexposed_fraction: np.ndarray
 
 
+def _masked_rates(rad: np.ndarray, spec: SensorSpec, mask: np.ndarray | None, psf: bool) -> np.ndarray:
+    """Photo-electron rates (e-/s) of the raw pixels that matter, ``(n, n_masked)`` for ``(n, rows, cols, 3)``
+    radiance: all pixels without ``mask``, NaN at the unmasked ones of a per-frame (3-D) ``mask``."""
+    n = rad.shape[0]
+    if psf and spec.psf_sigma_px > 0:
+        rad = apply_psf(rad, spec.psf_sigma_px)
+    rate = _mosaic_scaled(rad, spec.bayer_pattern, np.asarray(spec.sensitivity_rgb, dtype=np.float32),
+                          dtype=np.float32)                                # (n, rows, cols) e-/s
+    if mask is None:
+        return rate.reshape(n, -1)
+    m = np.asarray(mask, dtype=bool)
+    if m.ndim == 2:
+        return rate[:, m]                                                  # (n, n_masked)
+    m = np.broadcast_to(m, rate.shape)
+    return np.where(m, rate, np.nan).reshape(n, -1)
+
+
+def _rate_range(vals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Largest and smallest positive rate of each frame's ``(n, n_masked)`` rates, float64 (0 and inf if none)."""
+    n = vals.shape[0]
+    with np.errstate(invalid="ignore"):
+        r_max = np.nanmax(np.where(vals > 0, vals, 0), axis=1, initial=0.0).astype(np.float64) \
+            if vals.size else np.zeros(n)
+        r_min = np.nanmin(np.where(vals > 0, vals, np.inf), axis=1, initial=np.inf).astype(np.float64) \
+            if vals.size else np.full(n, np.inf)
+    return r_max, r_min
+
+
 def choose_bracket(radiance_rgb: np.ndarray, spec: SensorSpec, mask: np.ndarray | None = None, *,
                    hi: float = 0.8, lo: float = 0.05, min_ratio: float = 2.0, max_ratio: float | None = None,
                    max_time_s: float = 10.0, psf: bool = True, return_report: bool = False):
@@ -511,24 +539,8 @@ def choose_bracket(radiance_rgb: np.ndarray, spec: SensorSpec, mask: np.ndarray 
         raise ValueError(f"need 0 < lo < hi <= 1, 1 < min_ratio <= max_ratio and max_time_s > 0, got lo={lo}, "
                          f"hi={hi}, min_ratio={min_ratio}, max_ratio={max_ratio}, max_time_s={max_time_s}")
     n = rad.shape[0]
-    if psf and spec.psf_sigma_px > 0:
-        rad = apply_psf(rad, spec.psf_sigma_px)
-    rate = _mosaic_scaled(rad, spec.bayer_pattern, np.asarray(spec.sensitivity_rgb, dtype=np.float32),
-                          dtype=np.float32)                                # (n, rows, cols) e-/s
-    if mask is None:
-        vals = rate.reshape(n, -1)
-    else:
-        m = np.asarray(mask, dtype=bool)
-        if m.ndim == 2:
-            vals = rate[:, m]                                              # (n, n_masked)
-        else:
-            m = np.broadcast_to(m, rate.shape)
-            vals = np.where(m, rate, np.nan).reshape(n, -1)
-    with np.errstate(invalid="ignore"):
-        r_max = np.nanmax(np.where(vals > 0, vals, 0), axis=1, initial=0.0).astype(np.float64) \
-            if vals.size else np.zeros(n)
-        r_min = np.nanmin(np.where(vals > 0, vals, np.inf), axis=1, initial=np.inf).astype(np.float64) \
-            if vals.size else np.full(n, np.inf)
+    vals = _masked_rates(rad, spec, mask, psf)                             # (n, n_masked) e-/s
+    r_max, r_min = _rate_range(vals)
     lit = np.isfinite(r_min) & (r_max > 0)
     full = (spec.white_level - spec.black_level) * spec.gain_e_per_dn      # eq. F = (W - b) g
     dyn = np.where(lit, r_max / np.where(lit, r_min, 1.0), np.inf)

@@ -198,7 +198,7 @@ def test_photon_dominated_monte_carlo_thesis_worst_cases():
     measured = _rms(single - truth) / _rms(demux - truth)
     assert measured == pytest.approx(np.sqrt((n + 1) / (2 * n)), rel=0.15)
     assert measured < 1.0
-    # "all but one LED" patterns: SNR drops by about 1/sqrt(n_i) (thesis §3.1, line 294)
+    # "all but one LED" patterns: SNR drops by about 1/sqrt(n_i) (thesis ch. 3.1)
     n = 16
     M = (np.ones((n, n)) - np.eye(n)).astype(np.uint8)
     truth = rng.uniform(500.0, 1500.0, size=(n, 3000))

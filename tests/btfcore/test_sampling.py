@@ -8,6 +8,7 @@ import pytest
 from btfcore.model.abtf import patch_matrix
 from btfcore.acquisition.hadamard import multiplexing_patterns
 from btfcore.capture.resample import lv_product, parabolic_map, ubo2014_directions
+from btfcore.acquisition.synthetic_basis import synthetic_log_abrdf_basis
 from btfcore.acquisition.sampling import (
     SamplingResult,
     greedy,
@@ -21,24 +22,21 @@ from btfcore.acquisition.sampling import (
 )
 
 
-def _abrdf_basis(n_dirs: int = 24, n_tx: int = 200, k: int = 12, seed: int = 0) -> np.ndarray:
-    """SVD basis of a smooth synthetic log-ABRDF matrix (diffuse + Blinn-Phong lobe, tilted normals)."""
-    rng = np.random.default_rng(seed)
-    d = ubo2014_directions()[:n_dirs]
-    light, view = lv_product(d, d)
-    n = np.column_stack([rng.normal(0, 0.25, (n_tx, 2)), np.ones(n_tx)])
-    n /= np.linalg.norm(n, axis=1, keepdims=True)
-    h = light + view
-    h /= np.linalg.norm(h, axis=1, keepdims=True)
-    ci, co = np.clip(light @ n.T, 0, None), np.clip(view @ n.T, 0, None)
-    spec = np.clip(h @ n.T, 0, None) ** rng.uniform(5, 60, n_tx)
-    B = np.log(1e-3 + ci * (rng.uniform(0.2, 0.8, n_tx) + rng.uniform(0, 1, n_tx) * spec) * (0.5 + 0.5 * co))
-    return np.linalg.svd(B, full_matrices=False)[0][:, :k]
-
-
 @pytest.fixture(scope="module")
 def U() -> np.ndarray:
-    return _abrdf_basis()
+    return synthetic_log_abrdf_basis()
+
+
+def test_synthetic_basis_is_the_leading_singular_vectors():
+    """Orthonormal, seeded, and the leading vectors do not depend on how many are asked for (up to sign)."""
+    U = synthetic_log_abrdf_basis(n_dirs=12, n_tx=50, k=6, seed=4)
+    assert U.shape == (144, 6)
+    np.testing.assert_allclose(U.T @ U, np.eye(6), atol=1e-10)
+    np.testing.assert_array_equal(U, synthetic_log_abrdf_basis(n_dirs=12, n_tx=50, k=6, seed=4))
+    again = synthetic_log_abrdf_basis(n_dirs=12, n_tx=50, k=12, seed=4)        # same matrix, more vectors
+    np.testing.assert_allclose(np.abs(np.sum(U * again[:, :6], axis=0)), 1.0, atol=1e-10)
+    with pytest.raises(ValueError, match="k = 51"):
+        synthetic_log_abrdf_basis(n_dirs=12, n_tx=50, k=51)
 
 
 def test_random_swap_history_never_increases(U):
@@ -63,7 +61,7 @@ def test_random_swap_patience_stops_early(U):
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_greedy_beats_random_swap(seed):
-    U = _abrdf_basis(seed=seed)
+    U = synthetic_log_abrdf_basis(seed=seed)
     swap = random_swap(U, 30, max_steps=1500, seed=seed)
     g = greedy(U, 30, seed=seed)
     assert g.kappa <= swap.kappa

@@ -1,4 +1,7 @@
-"""Acquisition evaluation (tasks.evaluate_acquisition, btfcore.acquisition.noise): noise model, chunked = in-memory, bad input."""
+"""Acquisition evaluation (tasks.evaluate_acquisition): truth stores, chunked = in-memory, bad input.
+
+The numerics on arrays (noise model, multiplexing, strategies, band scores) are tested in
+tests/btfcore/test_band_evaluation.py."""
 
 from __future__ import annotations
 
@@ -7,51 +10,9 @@ import pytest
 import zarr
 
 from btfcore.metrics import mpsnr, mre, mrmse, relative_error
-from btfcore.acquisition.noise import SensorNoise, expose, exposure_gain, noise_moments
 
 CONFIG_KW = dict(device="tiny", n_turntable=None, texture_size=12, materials_per_class=2,
                  classes=("carpet", "stone"), sampling_steps=200, als_iterations=3, band_rows=4)
-
-
-# --------------------------------------------------------------------------- the noise model
-
-
-@pytest.mark.parametrize("dtype", [np.float32, np.float64])
-def test_noise_has_the_stated_mean_and_variance(dtype):
-    noise = SensorNoise(full_well_e=5500.0, read_noise_e=3.0, fill=0.8)
-    signal = np.array([0.5, 0.05, 0.002], dtype)[:, None] * np.ones((3, 40000), dtype)   # 3 images
-    gain = exposure_gain(np.array([0.5, 0.5, 0.5]), noise)                              # one exposure
-    assert np.allclose(gain * 0.5, 0.8 * 5500.0)                                         # max at fill * FW
-    x = expose(signal, gain, noise, np.random.default_rng(3), out_dtype=np.float64)
-    mean, var = noise_moments(signal, gain, noise)
-    n = signal.shape[1]
-    for i in range(3):
-        se = np.sqrt(var[i, 0] / n)
-        assert abs(x[i].mean() - mean[i, 0]) < 5 * se                                    # unbiased
-        assert abs(x[i].var() / var[i, 0] - 1) < 5 * np.sqrt(2 / n) + 0.01               # photon + read
-    # photon noise dominates bright images, read noise dark ones
-    assert var[0, 0] > 0.99 * signal[0, 0] / gain[0]
-    assert var[2, 0] > 3.0 ** 2 / gain[2] ** 2
-
-
-def test_exposure_refuses_a_black_image():
-    with pytest.raises(ValueError, match="image 1 has brightest value 0.0"):
-        exposure_gain(np.array([1.0, 0.0]), SensorNoise())
-
-
-def test_multiplexed_images_get_shorter_exposures():
-    from btfcore.acquisition.hadamard import multiplexing_patterns
-    from tasks.evaluate_acquisition import Geometry, multiplex
-
-    rng = np.random.default_rng(0)
-    g = Geometry(1, 2, 7, 4, 4)
-    truth = rng.uniform(0.1, 1.0, (g.n_lv, 4, 4, 3)).astype(np.float32)
-    p = multiplexing_patterns(7)
-    mux = multiplex(truth, p, g)
-    noise = SensorNoise()
-    g_single = exposure_gain(truth.reshape(g.n_lv, -1).max(1), noise)
-    g_mux = exposure_gain(mux.reshape(len(mux), -1).max(1), noise)
-    assert g_mux.max() < g_single.min()          # brighter patterns, shorter exposures (fewer e- per unit)
 
 
 # --------------------------------------------------------------------------- a tiny evaluated database
@@ -75,8 +36,9 @@ def tiny_eval(tmp_path_factory, dask_client):
 def _setup(config, out, materials, material_id):
     from btfcore.acquisition.hadamard import multiplexing_patterns
     from btfcore.acquisition.noise import SensorNoise
-    from tasks.evaluate_acquisition import (
-        _gains, _geometry, _operators, _reduce_max, _reduce_variance, band_maxima, band_variance, bands)
+    from btfcore.acquisition.band_evaluation import moments_variance
+    from tasks.evaluate_acquisition import band_maxima, band_variance, bands
+    from tasks.evaluate_acquisition.graph import _gains, _geometry, _operators, _reduce_max
 
     m = next(x for x in materials if x.material_id == material_id)
     geometry = _geometry(m)
@@ -85,7 +47,7 @@ def _setup(config, out, materials, material_id):
     seed = (0, 5)
     parts = bands(geometry.height, 5)
     gains = _gains(_reduce_max([band_maxima(m.path, a, b, patterns, geometry) for a, b in parts]), noise, m.path)
-    variance = _reduce_variance([band_variance(m.path, a, b, gains, patterns, geometry, noise, seed)
+    variance = moments_variance([band_variance(m.path, a, b, gains, patterns, geometry, noise, seed)
                                  for a, b in parts])
     strategies, _ = _operators(str(out / "model.zarr"), materials, material_id, config.model_settings(), geometry,
                                config, variance, patterns)
@@ -102,8 +64,9 @@ def test_truth_stores_are_a_database(tiny_eval):
 
 def test_variance_over_bands_equals_the_whole_texture(tiny_eval):
     from btfcore.acquisition.reconstruct import texture_variance
-    from tasks.evaluate_acquisition import (
-        _geometry, _read_rows, _reduce_variance, band_variance, demultiplex_views, noisy_rows)
+    from btfcore.acquisition.band_evaluation import moments_variance
+    from tasks.evaluate_acquisition import band_variance, demultiplex_views, noisy_rows
+    from tasks.evaluate_acquisition.graph import _read_rows
     config, out, materials = tiny_eval
     m, geometry, patterns, noise, seed, gains, variance, _ = _setup(config, out, materials, materials[0].material_id)
     truth = _read_rows(m.path, 0, geometry.height)
@@ -112,7 +75,7 @@ def test_variance_over_bands_equals_the_whole_texture(tiny_eval):
     x = demultiplex_views(mux, patterns, geometry)
     assert variance.shape == (geometry.n_lv,)
     np.testing.assert_allclose(variance, texture_variance(x.reshape(geometry.n_lv, -1)), rtol=1e-6)
-    other = _reduce_variance([band_variance(m.path, a, b, gains, patterns, geometry, noise, seed)
+    other = moments_variance([band_variance(m.path, a, b, gains, patterns, geometry, noise, seed)
                               for a, b in ((0, 12),)])
     np.testing.assert_allclose(other, variance, rtol=1e-5)
 
@@ -120,8 +83,9 @@ def test_variance_over_bands_equals_the_whole_texture(tiny_eval):
 @pytest.mark.parametrize("band_rows", [1, 4, 5])
 def test_chunked_reconstruction_equals_in_memory(tiny_eval, tmp_path, band_rows):
     from tasks.evaluate_acquisition import (
-        BandScores, _read_rows, bands, create_reconstruction_store, demultiplex_views, evaluate_band, finish_scores,
-        noisy_rows, reconstruct_band)
+        BandScores, bands, create_reconstruction_store, demultiplex_views, evaluate_band, finish_scores, noisy_rows,
+        reconstruct_band)
+    from tasks.evaluate_acquisition.graph import _read_rows
 
     config, out, materials = tiny_eval
     mid = materials[1].material_id
@@ -156,7 +120,8 @@ def test_chunked_reconstruction_equals_in_memory(tiny_eval, tmp_path, band_rows)
 
 def test_denoising_reduces_the_demultiplexed_error(tiny_eval):
     """Sanity of the multiplexed path: a model projection removes noise a plain demultiplexing keeps."""
-    from tasks.evaluate_acquisition import _read_rows, demultiplex_views, noisy_rows
+    from tasks.evaluate_acquisition import demultiplex_views, noisy_rows
+    from tasks.evaluate_acquisition.graph import _read_rows
 
     config, out, materials = tiny_eval
     m, geometry, patterns, noise, seed, gains, _, _ = _setup(config, out, materials, materials[0].material_id)
@@ -164,8 +129,8 @@ def test_denoising_reduces_the_demultiplexed_error(tiny_eval):
     single, mux = noisy_rows(truth, 0, gains, patterns, geometry, noise, seed)
     demux = demultiplex_views(mux, patterns, geometry)
     # noise-free multiplexing demultiplexes exactly
-    from tasks.evaluate_acquisition import multiplex
-    np.testing.assert_allclose(demultiplex_views(multiplex(truth, patterns, geometry), patterns, geometry), truth,
+    from btfcore.acquisition.reconstruct import measure
+    np.testing.assert_allclose(demultiplex_views(measure(truth, patterns=patterns), patterns, geometry), truth,
                                atol=1e-4 * float(truth.max()))
     assert relative_error(truth, demux) > relative_error(truth, single) > 0
 

@@ -67,7 +67,7 @@ ZARR_CREATORS = {"create", "create_array", "array", "zeros", "ones", "full", "em
 def test_every_array_is_created_through_the_checksum_helper():
     """No module of tasks/ calls zarr's create_array itself: tasks.integrity.create_array is the one home."""
     bad = []
-    for path in sorted((ROOT / "tasks").glob("*.py")):
+    for path in sorted((ROOT / "tasks").rglob("*.py")):
         if path.name == "integrity.py":
             continue
         for node in ast.walk(ast.parse(path.read_text())):
@@ -98,7 +98,7 @@ def test_every_array_of_a_capture_store_has_checksums(capture):
 
 
 def test_every_array_of_a_measurement_store_has_checksums(tmp_path, chunk_files):
-    from tasks.measurement import write_measurement
+    from tasks.stores.measurement import write_measurement
 
     rng = np.random.default_rng(1)
     G = np.eye(4, dtype=np.float32)
@@ -222,7 +222,7 @@ def test_a_store_without_checksums_still_validates_and_says_so(tmp_path, capsys,
 
 
 def test_validate_opens_other_store_kinds(tmp_path, capsys):
-    from tasks.measurement import write_measurement
+    from tasks.stores.measurement import write_measurement
 
     dirs = np.tile([0.0, 0.0, 1.0], (4, 1))
     write_measurement(tmp_path / "m.zarr", np.ones((4, 2, 2, 3)), np.eye(4, dtype=np.float32), dirs, dirs, (1, 1, 4))

@@ -12,7 +12,8 @@ from btfcore.acquisition.measurement_operator import demultiplexing_matrix, meas
 from btfcore.acquisition.plan import ExposureModel, sparse_multiplexed_plan
 from btfcore.acquisition.reconstruct import apply, measurement_matrix, solve_operator
 from btfcore.dome import get_device
-from tasks.measurement import plan_layout, write_measurement
+from tasks.measurement import plan_layout
+from tasks.stores.measurement import write_measurement
 from tasks.reconstruct import ReconstructSettings, check_inputs, open_model, reconstruct_chunk, reconstruct_store
 
 N_TURN, N_CAM, N_LEDS, H, W = 2, 2, 8, 8, 8

@@ -12,7 +12,7 @@ import zarr
 
 from btfcore.render.btf_render import Camera, DirectionalLight, PointLight
 from btfcore.capture.resample import lv_product
-from tasks.render import load_env_map, open_btf_store, render_store
+from tasks.render import load_env_map, read_btf_store, render_store
 from tasks.shared_data import shared_file
 
 
@@ -94,7 +94,7 @@ def test_forest_environment_map(tmp_path):
 def test_bad_stores_are_refused(tmp_path):
     _store(tmp_path / "b.zarr", complete=False)
     with pytest.raises(ValueError, match="unfinished BTF store"):
-        open_btf_store(tmp_path / "b.zarr")
+        read_btf_store(tmp_path / "b.zarr")
     zarr.open_group(str(tmp_path / "o.zarr"), mode="w", zarr_format=3)
     with pytest.raises(ValueError, match="not a BTF store"):
         render_store(tmp_path / "o.zarr")

@@ -1,4 +1,4 @@
-"""Tests of the capture store (tasks/stores/capture.py) on real Zarr v3 stores on disk."""
+"""Tests of the capture store (tasks/stores/capture*.py) on real Zarr v3 stores on disk."""
 
 from __future__ import annotations
 
@@ -13,8 +13,6 @@ import zarr
 
 from tasks.stores import (
     BAYER_PATTERNS,
-    SCHEMA_NAME,
-    SCHEMA_VERSION,
     CaptureMetadata,
     CaptureStore,
     CaptureStoreError,
@@ -25,6 +23,7 @@ from tasks.stores import (
     validate_capture_store,
     write_chunk_aligned,
 )
+from tasks.stores.capture import SCHEMA_NAME, SCHEMA_VERSION
 
 N_TURN, N_CAM, N_ILLUM, N_EXP, ROWS, COLS = 2, 2, 3, 2, 8, 8
 N_LEDS, N_DARK = 4, 2

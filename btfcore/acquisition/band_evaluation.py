@@ -1,0 +1,291 @@
+"""Measure, reconstruct and score one band of texture rows: the numerics of the acquisition evaluation.
+
+The evaluation (``docs/evaluation.md``) works on bands of texture rows of a
+noise-free truth BTF ``(n_lv, rows, w, 3)`` (linear RGB, rows
+``(turntable, camera, light)``, the light fastest):
+
+* **measurements**: single-light rows and S-matrix patterns per view summed
+  from the linear truth (light superposes before the sensor), each image
+  exposed by :func:`btfcore.acquisition.noise.expose`; every texture row's
+  noise has its own seeded generator, so bands and halos see the same
+  measurement (:func:`noisy_rows`, :func:`measure_band`);
+* **demultiplexing** per view by least squares (VMV §3.2,
+  :func:`demultiplex_views`) and the per-texture variance of the result
+  reduced over bands (:func:`demultiplexed_moments`, :func:`moments_variance`;
+  the thresholded de-noising, VMV §4.1);
+* **reconstruction** of one strategy (:mod:`btfcore.acquisition.strategies`)
+  on one band (:func:`reconstruct_band`);
+* **scores**: sums of the relative L2 on log Y (paper 1 §4.1.1) and of the
+  per-texture errors of mRMSE, mPSNR and mRE (SR paper eqs. 8-10) per band
+  (:func:`score_band`), reduced over bands and finished by
+  :func:`finish_scores` to the values :mod:`btfcore.metrics` gives on the
+  whole BTF.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from btfcore.acquisition.noise import SensorNoise, expose
+from btfcore.acquisition.reconstruct import apply, measure, reconstruct_abtf
+from btfcore.acquisition.strategies import Geometry, Strategy
+from btfcore.capture.demultiplex import demultiplex_operator
+from btfcore.model.colour import LOG_YUV_EPS, from_log_yuv, log_luminance, to_log_yuv
+
+__all__ = ["CHROMA_MAX", "LOG_Y_MAX", "BandScores", "BandTruth", "combine_moments", "demultiplex_views",
+           "demultiplexed_moments", "finish_scores", "image_maxima", "measure_band", "moments_variance",
+           "noisy_multiplexed", "noisy_rows", "noisy_single", "reconstruct_band", "score_band"]
+
+#: Range a log-space reconstruction is clipped to before it is mapped back to RGB: log Y in
+#: [log eps, LOG_Y_MAX] (an unregularised solve can extrapolate to exp overflow), U/Y and V/Y in
+#: [-CHROMA_MAX, CHROMA_MAX]. Far outside any truth value, so the errors stay those of the solve.
+LOG_Y_MAX = 20.0
+CHROMA_MAX = 5.0
+
+#: Gains of the single-light and of the multiplexed images, ``((n_lv,), (n_views * n_p,))``.
+Gains = tuple[np.ndarray, np.ndarray]
+
+
+# --------------------------------------------------------------------------- measurements
+
+
+def demultiplex_views(measured: np.ndarray, patterns: np.ndarray, geometry: Geometry,
+                      P: np.ndarray | None = None) -> np.ndarray:
+    """Least-squares demultiplexing of every view (VMV §3.2).
+
+    Parameters
+    ----------
+    measured : (n_views * n_p, ...) ndarray
+        Every view under every pattern, view-major.
+    patterns : (n_p, n_leds) ndarray
+    geometry : Geometry
+    P : (n_leds, n_p) ndarray, optional
+        :func:`btfcore.capture.demultiplex.demultiplex_operator` of ``patterns``.
+
+    Returns
+    -------
+    single : (n_lv, ...) ndarray
+    """
+    P = demultiplex_operator(patterns) if P is None else P
+    tail = measured.shape[1:]
+    m = measured.reshape(geometry.n_views, patterns.shape[0], -1)
+    return np.matmul(P.astype(np.float32)[None], m).reshape((geometry.n_lv,) + tail)
+
+
+def image_maxima(truth: np.ndarray, patterns: np.ndarray) -> Gains:
+    """Brightest noise-free value of every single-light ``(n_lv,)`` and multiplexed ``(n_views * n_p,)`` image."""
+    n = truth.shape[0]
+    mux = measure(truth, patterns=patterns)                                   # (I_views (x) M) B
+    return truth.reshape(n, -1).max(axis=1), mux.reshape(-1, truth[0].size).max(axis=1)
+
+
+def _expose_rows(signal: np.ndarray, r0: int, gain: np.ndarray, noise: SensorNoise, seed: Sequence[int],
+                 kind: int) -> np.ndarray:
+    """Noisy ``signal`` (texture rows ``r0 : r0 + len`` on axis 1); row ``r``'s noise comes from ``seed + [kind, r]``."""
+    out = np.empty_like(signal)
+    for i in range(signal.shape[1]):
+        out[:, i] = expose(signal[:, i], gain, noise, np.random.default_rng([*seed, kind, r0 + i]))
+    return out
+
+
+def noisy_single(truth: np.ndarray, r0: int, gains: Gains, noise: SensorNoise, seed: Sequence[int]) -> np.ndarray:
+    """Noisy single-light measurement ``(n_lv, rows, w, 3)`` of texture rows ``r0 : r0 + rows``."""
+    return _expose_rows(truth, r0, gains[0], noise, seed, 0)
+
+
+def noisy_multiplexed(truth: np.ndarray, r0: int, gains: Gains, patterns: np.ndarray, noise: SensorNoise,
+                      seed: Sequence[int]) -> np.ndarray:
+    """Noisy multiplexed measurement ``(n_views * n_p, rows, w, 3)`` (every view under every pattern).
+
+    Light superposes, so the multiplexed radiance is formed from the linear,
+    noise-free truth; the noise comes afterwards (docs/evaluation.md, "Noise model").
+    """
+    return _expose_rows(measure(truth, patterns=patterns), r0, gains[1], noise, seed, 1)
+
+
+def noisy_rows(truth: np.ndarray, r0: int, gains: Gains, patterns: np.ndarray, geometry: Geometry,
+               noise: SensorNoise, seed: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
+    """Noisy single-light and multiplexed measurements of texture rows ``r0 : r0 + len``.
+
+    The noise of texture row ``r`` is drawn from its own generator
+    (``seed + [kind, r]``), so a row is measured alike in every band and halo
+    that contains it. ``geometry`` must describe ``truth``'s rows.
+    """
+    if truth.shape[0] != geometry.n_lv:
+        raise ValueError(f"truth has {truth.shape[0]} rows, the geometry {geometry.n_lv} light/view pairs")
+    return noisy_single(truth, r0, gains, noise, seed), noisy_multiplexed(truth, r0, gains, patterns, noise, seed)
+
+
+def measure_band(truth_halo: np.ndarray, g0: int, r0: int, r1: int, gains: Gains, patterns: np.ndarray,
+                 geometry: Geometry, noise: SensorNoise, seed: Sequence[int]
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The measurements one band's reconstructions read.
+
+    Parameters
+    ----------
+    truth_halo : (n_lv, halo rows, w, 3) ndarray
+        Truth of texture rows ``g0 : g0 + halo rows`` (the band r0:r1 and its ABTF halo).
+
+    Returns
+    -------
+    truth, single_halo, mux, demux : ndarray
+        The truth of rows r0:r1, the noisy single-light rows of the halo,
+        the noisy multiplexed rows of r0:r1 and those demultiplexed.
+    """
+    single = noisy_single(truth_halo, g0, gains, noise, seed)
+    truth = truth_halo[:, r0 - g0:r1 - g0]
+    mux = noisy_multiplexed(truth, r0, gains, patterns, noise, seed)       # each row's noise is the row's own
+    return truth, single, mux, demultiplex_views(mux, patterns, geometry)
+
+
+# --------------------------------------------------------------------------- per-texture variance over bands
+
+
+Moments = tuple[np.ndarray, np.ndarray, np.ndarray]
+
+
+def combine_moments(a: Moments, b: Moments) -> Moments:
+    """Chan, Golub and LeVeque's pairwise combination of (count, mean, M2)."""
+    na, ma, qa = a
+    nb, mb, qb = b
+    n = na + nb
+    d = mb - ma
+    return n, ma + d * nb / n, qa + qb + d * d * na * nb / n
+
+
+def demultiplexed_moments(truth: np.ndarray, r0: int, gains: Gains, patterns: np.ndarray, geometry: Geometry,
+                          noise: SensorNoise, seed: Sequence[int]) -> Moments:
+    """(count, mean ``(n_lv,)``, M2 ``(n_lv,)``) of the linear demultiplexed RGB of texture rows ``r0 : r0 + len``."""
+    mux = noisy_multiplexed(truth, r0, gains, patterns, noise, seed)
+    x = demultiplex_views(mux, patterns, geometry).astype(np.float64).reshape(geometry.n_lv, -1)   # (n_lv, m)
+    mean = x.mean(axis=1)
+    return np.float64(x.shape[1]), mean, ((x - mean[:, None]) ** 2).sum(axis=1)
+
+
+def moments_variance(parts: Sequence[Moments]) -> np.ndarray:
+    """Population variance ``(n_lv,)`` per texture of the bands' :func:`demultiplexed_moments`."""
+    acc = parts[0]
+    for p in parts[1:]:
+        acc = combine_moments(acc, p)
+    n, _, m2 = acc
+    return m2 / n
+
+
+# --------------------------------------------------------------------------- reconstruction
+
+
+def _to_rgb(x: np.ndarray) -> np.ndarray:
+    """``from_log_yuv`` of a log-space reconstruction clipped to :data:`LOG_Y_MAX` / :data:`CHROMA_MAX`."""
+    x = np.array(x, dtype=np.float32)
+    np.clip(x[..., 0], np.log(LOG_YUV_EPS), LOG_Y_MAX, out=x[..., 0])
+    np.clip(x[..., 1:], -CHROMA_MAX, CHROMA_MAX, out=x[..., 1:])
+    return from_log_yuv(x)
+
+
+def reconstruct_band(strategy: Strategy, r0: int, r1: int, height: int, truth_halo: np.ndarray,
+                     single_halo: np.ndarray, mux: np.ndarray, g0: int, geometry: Geometry,
+                     demux: np.ndarray, log_cache: dict[str, np.ndarray] | None = None) -> np.ndarray:
+    """One strategy's reconstruction of texture rows r0:r1, linear RGB ``(n_lv, r1 - r0, w, 3)``.
+
+    ``truth_halo`` and ``single_halo`` hold texture rows ``g0 : g0 + len`` (the ABTF halo);
+    ``mux`` (the multiplexed measurement) and ``demux`` (it demultiplexed) rows r0:r1 only.
+    ``log_cache`` keeps the log-space conversion of a whole source between the strategies of a band.
+    """
+    log_cache = {} if log_cache is None else log_cache
+    a, b = r0 - g0, r1 - g0
+    n_lv, w = geometry.n_lv, geometry.width
+    if strategy.space == "linear":
+        op = strategy.operators["rgb"]
+        if strategy.source == "single":
+            y = single_halo[strategy.rows, a:b]
+        elif strategy.source == "demux":
+            y = demux
+        else:
+            y = mux if strategy.rows is None else mux[strategy.rows]
+        out = apply(op, y.reshape(y.shape[0], -1))
+        return out.reshape(n_lv, r1 - r0, w, 3)
+    if strategy.source == "demux":
+        if not strategy.operators:
+            return np.maximum(demux, 0.0)                                  # plain demultiplexing
+        x_band = to_log_yuv(demux)
+        x = np.stack([apply(op, x_band[..., i].reshape(n_lv, -1)).reshape(n_lv, r1 - r0, w)
+                      for i, op in enumerate(strategy.operators.values())], axis=-1)
+        return _to_rgb(x)
+    source = truth_halo if strategy.source == "truth" else single_halo
+    if strategy.rows is None or len(strategy.rows) == len(source):
+        if strategy.source not in log_cache:                                   # every row: convert once per band
+            log_cache[strategy.source] = to_log_yuv(source)
+        x_all = log_cache[strategy.source]
+        x_all = x_all if strategy.rows is None else x_all[strategy.rows]
+    else:
+        x_all = to_log_yuv(source[strategy.rows])                              # (n_meas, halo rows, w, 3)
+    chans = []
+    for i, op in enumerate(strategy.operators.values()):                     # log Y, U/Y, V/Y
+        if op.patch_size is not None:                                          # ABTF: band with its halo
+            chans.append(reconstruct_abtf(op, x_all[..., i], out_rows=(r0, r1), height=height))
+        else:
+            chans.append(apply(op, x_all[:, a:b, :, i].reshape(x_all.shape[0], -1)).reshape(n_lv, r1 - r0, w))
+    return _to_rgb(np.stack(chans, axis=-1))
+
+
+# --------------------------------------------------------------------------- scores
+
+
+@dataclass
+class BandScores:
+    """Error sums of one strategy over some texels, reduced over bands."""
+
+    sse_log_y: float = 0.0
+    ss_log_y: float = 0.0
+    sse_rows: np.ndarray | None = None      # (n_lv,) per-texture squared error, linear RGB
+    ss_rows: np.ndarray | None = None       # (n_lv,) per-texture squared norm of the truth
+    n_texels: int = 0
+
+    def add(self, other: BandScores) -> BandScores:
+        if self.sse_rows is None:
+            return other
+        return BandScores(self.sse_log_y + other.sse_log_y, self.ss_log_y + other.ss_log_y,
+                          self.sse_rows + other.sse_rows, self.ss_rows + other.ss_rows,
+                          self.n_texels + other.n_texels)
+
+
+@dataclass(frozen=True)
+class BandTruth:
+    """The truth's terms of :func:`score_band`, computed once per band for every strategy."""
+
+    rgb: np.ndarray            # (n_lv, rows, w, 3) linear RGB
+    log_y: np.ndarray          # (n_lv, rows, w) float64 log Y
+    ss_rows: np.ndarray        # (n_lv,) squared norm of each texture
+
+    @classmethod
+    def of(cls, truth: np.ndarray) -> BandTruth:
+        t = truth.reshape(truth.shape[0], -1).astype(np.float64)
+        return cls(truth, log_luminance(truth).astype(np.float64), np.einsum("ij,ij->i", t, t))
+
+
+def score_band(ref: BandTruth, recon: np.ndarray) -> BandScores:
+    """Sums for relative L2 on log Y and the per-texture errors of mRMSE / mPSNR / mRE of one band."""
+    t = ref.rgb
+    d = (recon.astype(np.float64) - t).reshape(t.shape[0], -1)
+    e = log_luminance(recon).astype(np.float64) - ref.log_y
+    return BandScores(float(np.vdot(e, e)), float(np.vdot(ref.log_y, ref.log_y)), np.einsum("ij,ij->i", d, d),
+                      ref.ss_rows, int(t.shape[1] * t.shape[2]))
+
+
+def finish_scores(s: BandScores, row_max: np.ndarray) -> dict[str, float]:
+    """Relative L2 on log Y (paper 1 §4.1.1) and SR eqs. (8)-(10) from the band sums.
+
+    ``row_max`` ``(n_lv,)`` is the brightest truth value of every texture
+    (the peak of eq. 9). Equal to :func:`btfcore.metrics.relative_error`
+    (``space='log_y'``), :func:`~btfcore.metrics.mrmse`,
+    :func:`~btfcore.metrics.mpsnr` and :func:`~btfcore.metrics.mre` of the
+    whole BTF (tested).
+    """
+    rmse = np.sqrt(s.sse_rows) / np.sqrt(s.n_texels)                          # eq. (8) term
+    with np.errstate(divide="ignore"):
+        psnr = 20 * np.log10(row_max / rmse)                                 # eq. (9) term
+    return {"rel_l2_log_y": float(np.sqrt(s.sse_log_y / s.ss_log_y)), "mrmse": float(np.mean(rmse)),
+            "mpsnr": float(np.mean(psnr)), "mre": float(np.mean(np.sqrt(s.sse_rows / s.ss_rows)) * 100)}

@@ -1,0 +1,367 @@
+"""The acquisition strategies of the evaluation: one registry of names, measurements and solve operators.
+
+Every strategy of the acquisition evaluation (``docs/evaluation.md``,
+"Strategies") is one entry of :data:`REGISTRY`: its name, the space it
+reconstructs in, the measurement it reads, and the builder of its sampling
+and solve operators. The names (:func:`strategy_names`), the operators
+(:func:`build_strategies`) and the report's rows all come from it.
+
+* paper 1 (den Brok et al.): ABRDF and 3x3 ABTF reconstruction in log Y,
+  U/Y, V/Y (§3.3-3.4, eq. 3) from the 7x7 parabolic map (Fig. 3b) or random
+  swap (Alg. 1), and the projection of the truth (Table 2, "proj");
+* VMV paper §4.1: plain demultiplexing, projection and thresholded
+  de-noising on a truncated SVD of linear RGB;
+* paper 4: sparse (pinv, Tikhonov with :math:`\\lambda\\Sigma^{-1}`),
+  multiplexed and sparse + multiplexed reconstruction on the ALS basis
+  (§4.3, eq. 10; the sample counts of §5.2).
+
+Rows of a BTF are ``(turntable, camera, light)``, view-major with the light
+fastest: ``n_lv = n_turn * n_cam * n_leds`` light/view pairs.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from functools import cached_property
+from typing import Any
+
+import numpy as np
+
+from btfcore.acquisition.reconstruct import LAMBDA_ALS, SolveOperator, abtf_operator, solve_operator
+from btfcore.acquisition.sampling import multiplexed_basis, parabolic_map_sampling, random_swap
+
+__all__ = ["REGISTRY", "THESIS_N_S", "THESIS_PAIRS", "Geometry", "Strategy", "StrategyBases", "StrategySpec",
+           "build_strategies", "scaled_pairs", "strategy_names"]
+
+#: The thesis' sparse pair counts (paper 4 §5.2: n_s of 2,376 (light, turntable) pairs, all 11 cameras).
+THESIS_N_S = (100, 200, 400)
+#: (light, turntable) pairs of the thesis' dome (198 LEDs x 12 positions).
+THESIS_PAIRS = 198 * 12
+
+
+def scaled_pairs(n_s: int, n_pairs: int) -> int:
+    """The thesis' ``n_s`` of 2,376 (light, turntable) pairs scaled to a device with ``n_pairs`` pairs."""
+    return max(1, int(round(n_s * n_pairs / THESIS_PAIRS)))
+
+
+@dataclass(frozen=True)
+class Geometry:
+    """The light/view layout a measurement needs: views (turntable x camera) x LEDs, texture size."""
+
+    n_turn: int
+    n_cam: int
+    n_leds: int
+    height: int
+    width: int
+
+    @property
+    def n_views(self) -> int:
+        return self.n_turn * self.n_cam
+
+    @property
+    def n_lv(self) -> int:
+        return self.n_views * self.n_leds
+
+
+@dataclass
+class Strategy:
+    """One way of measuring and reconstructing.
+
+    ``space`` is ``'log'`` (log Y, U/Y, V/Y bases, one operator per channel
+    in that order; the log Y one may be an ABTF operator) or ``'linear'``
+    (one operator ``'rgb'`` on linear RGB). ``source`` is the measurement it
+    reads: ``'single'`` (single-light rows), ``'truth'`` (the noise-free
+    truth), ``'demux'`` (the demultiplexed multiplexed measurement) or
+    ``'mux'`` (the multiplexed rows themselves). ``rows`` index that source
+    (None: all). An empty ``operators`` means "no reconstruction" (the plain
+    demultiplexed BTF). ``info`` is reported.
+    """
+
+    name: str
+    space: str
+    source: str
+    rows: np.ndarray | None
+    operators: dict[str, SolveOperator]
+    info: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class StrategyBases:
+    """The bases the strategies reconstruct with (anything with ``U`` ``(n_lv, k)`` and ``sigma`` ``(k,)``).
+
+    ``log_yuv`` maps the channel names to the ABRDF bases of log Y, U/Y and
+    V/Y, in that order (log Y first); ``abtf_log_y`` is the 3x3 ABTF patch
+    basis of log Y, ``als`` paper 4's relative-error ALS basis of linear RGB
+    and ``linear`` the plain truncated SVD of linear RGB (VMV §4.1).
+    """
+
+    log_yuv: dict[str, Any]
+    abtf_log_y: Any
+    als: Any
+    linear: Any
+
+
+def _groups(geometry: Geometry, per_view: int) -> np.ndarray:
+    """Group id ``turntable * per_view + j`` of every row ``(turntable, camera, j)`` (all cameras together)."""
+    t = np.repeat(np.arange(geometry.n_turn), geometry.n_cam * per_view)
+    j = np.tile(np.arange(per_view), geometry.n_views)
+    return t * per_view + j
+
+
+def _rows_of_groups(units: np.ndarray, geometry: Geometry, per_view: int) -> np.ndarray:
+    """Rows (view-major, ``j`` fastest) of the chosen groups ``turntable * per_view + j``, sorted."""
+    t, j = np.divmod(np.asarray(units, dtype=np.int64), per_view)
+    rows = ((t[:, None] * geometry.n_cam + np.arange(geometry.n_cam)[None]) * per_view + j[:, None]).ravel()
+    return np.sort(rows)
+
+
+class _Design:
+    """The samplings one held-out material's strategies share, each computed once on first use."""
+
+    def __init__(self, bases: StrategyBases, geometry: Geometry, light_dir: np.ndarray, view_dir: np.ndarray,
+                 variance: np.ndarray, patterns: np.ndarray, seed: int, abrdf_k_fraction: float,
+                 sampling_steps: int) -> None:
+        self.bases, self.geometry, self.variance, self.patterns = bases, geometry, variance, patterns
+        self.light_dir, self.view_dir = light_dir, view_dir
+        self.seed, self.abrdf_k_fraction, self.sampling_steps = seed, abrdf_k_fraction, sampling_steps
+        self.U = {c: b.U for c, b in bases.log_yuv.items()}
+        self.log_y = next(iter(self.U))
+        self._abrdf_ops: dict[str, dict[str, SolveOperator]] = {}
+        self._sparse: dict[int, tuple[np.ndarray, Any]] = {}
+
+    # ---- paper 1
+    @cached_property
+    def pmap(self) -> np.ndarray:
+        return np.asarray(parabolic_map_sampling(self.light_dir, self.view_dir, 7), dtype=np.int64)
+
+    @cached_property
+    def k_abrdf(self) -> int:
+        return int(min(self.U[self.log_y].shape[1], max(1, int(self.abrdf_k_fraction * len(self.pmap)))))
+
+    @cached_property
+    def optimized(self) -> Any:
+        return random_swap(self.U[self.log_y][:, :self.k_abrdf], len(self.pmap), max_steps=self.sampling_steps,
+                           seed=self.seed)
+
+    def rows(self, label: str) -> np.ndarray:
+        return self.pmap if label == "pmap7" else np.asarray(self.optimized.rows, dtype=np.int64)
+
+    def abrdf_ops(self, label: str) -> dict[str, SolveOperator]:
+        """Pinv operators (paper 1 eq. 3) of every channel on the rows of sampling ``label``."""
+        if label not in self._abrdf_ops:
+            rows, k = self.rows(label), self.k_abrdf
+            self._abrdf_ops[label] = {c: solve_operator(u[:, :min(k, u.shape[1], len(rows))], method="pinv",
+                                                        rows=rows, fused=False) for c, u in self.U.items()}
+        return self._abrdf_ops[label]
+
+    @cached_property
+    def projection_ops(self) -> dict[str, SolveOperator]:
+        return {c: solve_operator(u[:, :self.k_abrdf], method="projection", fused=False) for c, u in self.U.items()}
+
+    # ---- paper 4
+    @cached_property
+    def n_pairs(self) -> int:
+        return self.geometry.n_turn * self.geometry.n_leds
+
+    def sparse(self, n_thesis: int) -> tuple[np.ndarray, Any]:
+        """Rows and random-swap result of the (turntable, LED) pairs for the thesis' ``n_thesis``."""
+        if n_thesis not in self._sparse:
+            g, als = self.geometry, self.bases.als
+            n_s = scaled_pairs(n_thesis, self.n_pairs)
+            # with fewer measured rows than vectors, kappa is taken on the leading vectors the rows can determine
+            k_s = min(int(als.U.shape[1]), n_s * g.n_cam)
+            US = als.U * als.sigma[None, :]
+            sel = random_swap(US[:, :k_s], n_s, groups=_groups(g, g.n_leds), max_steps=self.sampling_steps,
+                              seed=self.seed + n_thesis)
+            self._sparse[n_thesis] = (_rows_of_groups(np.asarray(sel.units), g, g.n_leds), sel)
+        return self._sparse[n_thesis]
+
+    @cached_property
+    def sparse_multiplexed(self) -> tuple[np.ndarray, Any, int]:
+        """Rows, random-swap result and n_s of the (turntable, pattern) pairs (paper 4 §4.3)."""
+        g, als, n_p = self.geometry, self.bases.als, self.patterns.shape[0]
+        n_s = scaled_pairs(THESIS_N_S[-1], g.n_turn * n_p)
+        A = multiplexed_basis(self.patterns, als.U, als.sigma)
+        sel = random_swap(A[:, :min(int(als.U.shape[1]), n_s * g.n_cam)], n_s, groups=_groups(g, n_p),
+                          max_steps=self.sampling_steps, seed=self.seed + 1)
+        return _rows_of_groups(np.asarray(sel.units), g, n_p), sel, n_s
+
+    def report(self) -> dict[str, Any]:
+        """Sample counts, condition numbers and the selected pairs of the sparse strategies."""
+        g = self.geometry
+        out: dict[str, Any] = {"paper1": {"n_samples": len(self.pmap), "fraction": len(self.pmap) / g.n_lv,
+                                          "k_abrdf": self.k_abrdf, "k_abtf": int(self.bases.abtf_log_y.U.shape[1]),
+                                          "kappa_optimized": self.optimized.kappa}}
+        counts = {}
+        for n_thesis in THESIS_N_S:
+            rows, sel = self.sparse(n_thesis)
+            counts[str(n_thesis)] = {"n_s": scaled_pairs(n_thesis, self.n_pairs), "n_meas": int(len(rows)),
+                                     "kappa": sel.kappa, "pairs": _pairs(sel, g.n_leds)}
+        rows, sel, n_s = self.sparse_multiplexed
+        out["paper4"] = {"k_als": int(self.bases.als.U.shape[1]), "n_pairs": self.n_pairs, "counts": counts,
+                         "sparse_multiplexed": {"n_s": n_s, "n_meas": int(len(rows)), "kappa": sel.kappa,
+                                                "pairs": _pairs(sel, self.patterns.shape[0])}}
+        return out
+
+
+def _pairs(sel: Any, per_turntable: int) -> list[list[int]]:
+    return np.stack(np.divmod(np.asarray(sel.units, dtype=np.int64), per_turntable), axis=1).tolist()
+
+
+#: What a builder returns: the rows of its source it reads (None: all), its operators and its report.
+Built = tuple[np.ndarray | None, dict[str, SolveOperator], dict[str, Any]]
+
+
+# --------------------------------------------------------------------------- builders, one per kind of strategy
+
+
+def _abrdf(d: _Design, label: str) -> Built:
+    rows, ops = d.rows(label), d.abrdf_ops(label)
+    return rows, ops, {"paper": "1", "basis": "ABRDF (log Y, U/Y, V/Y)", "k": d.k_abrdf,
+                       "n_meas": int(len(rows)), "kappa_log_y": ops[d.log_y].condition}
+
+
+def _abtf(d: _Design, label: str) -> Built:
+    rows = d.rows(label)
+    abtf = abtf_operator(d.bases.abtf_log_y.U, rows, p=3, method="pinv")
+    return rows, {**d.abrdf_ops(label), d.log_y: abtf}, {
+        "paper": "1", "basis": "3x3 ABTF for log Y, ABRDF for U/Y and V/Y", "k": int(d.bases.abtf_log_y.U.shape[1]),
+        "n_meas": int(len(rows)), "kappa_log_y": abtf.condition}
+
+
+def _abrdf_projection(d: _Design, _: Any) -> Built:
+    return None, dict(d.projection_ops), {"paper": "1", "basis": "ABRDF", "k": d.k_abrdf,
+                                          "note": "truth projected (lower bound)"}
+
+
+def _abtf_projection(d: _Design, _: Any) -> Built:
+    all_rows = np.arange(d.geometry.n_lv)
+    abtf = abtf_operator(d.bases.abtf_log_y.U, all_rows, p=3, method="pinv")
+    return all_rows, {**d.projection_ops, d.log_y: abtf}, {
+        "paper": "1", "basis": "3x3 ABTF", "k": int(d.bases.abtf_log_y.U.shape[1]),
+        "note": "truth projected (lower bound)"}
+
+
+def _demultiplexed(d: _Design, _: Any) -> Built:
+    return None, {}, {"paper": "VMV", "note": "no model"}
+
+
+def _projection(d: _Design, _: Any) -> Built:
+    U = d.bases.linear.U
+    return None, {"rgb": solve_operator(U, method="projection", fused=False)}, {
+        "paper": "VMV eq. den Brok", "basis": "class truncated SVD (linear RGB)", "k": int(U.shape[1])}
+
+
+def _thresholded(d: _Design, _: Any) -> Built:
+    # VMV §4.1: rows above the 9th decile of the variance of the linear ("unnormalised") demultiplexed
+    # textures left out of the projection on the class's truncated SVD of linear RGB ("D ~ U Sigma V^T")
+    U = d.bases.linear.U
+    thr = solve_operator(U, method="thresholded", variance=d.variance, fused=False)
+    return None, {"rgb": thr}, {"paper": "VMV §4.1", "basis": "class truncated SVD (linear RGB)", "decile": 9,
+                                "k": int(U.shape[1]), "variance": "linear demultiplexed RGB per texture",
+                                "condition": thr.condition}
+
+
+def _sparse_tikhonov(d: _Design, n_thesis: int) -> Built:
+    rows, _ = d.sparse(n_thesis)
+    als = d.bases.als
+    tik = solve_operator(als.U, als.sigma, method="tikhonov", rows=rows, lam=LAMBDA_ALS, fused=False)
+    return rows, {"rgb": tik}, {"paper": "4", "lam": LAMBDA_ALS, "n_s": scaled_pairs(n_thesis, d.n_pairs),
+                                "k": int(als.U.shape[1]), "n_meas": int(len(rows)), "condition": tik.condition}
+
+
+def _sparse_pinv(d: _Design, n_thesis: int) -> Built:
+    rows, _ = d.sparse(n_thesis)
+    k_p = min(int(d.bases.als.U.shape[1]), len(rows))
+    pinv = solve_operator(d.bases.als.U[:, :k_p], method="pinv", rows=rows, fused=False)
+    return rows, {"rgb": pinv}, {"paper": "1 eq. 3", "n_s": scaled_pairs(n_thesis, d.n_pairs), "k": k_p,
+                                 "n_meas": int(len(rows)), "condition": pinv.condition}
+
+
+def _multiplexed(d: _Design, _: Any) -> Built:
+    als = d.bases.als
+    mux = solve_operator(als.U, als.sigma, method="direct", patterns=d.patterns, lam=LAMBDA_ALS, fused=False)
+    return None, {"rgb": mux}, {"paper": "4 eq. 10", "lam": LAMBDA_ALS, "k": int(als.U.shape[1]),
+                                "n_meas": int(d.geometry.n_views * d.patterns.shape[0]), "condition": mux.condition}
+
+
+def _sparse_multiplexed(d: _Design, _: Any) -> Built:
+    rows, _, n_s = d.sparse_multiplexed
+    als = d.bases.als
+    sm = solve_operator(als.U, als.sigma, method="direct", patterns=d.patterns, rows=rows, lam=LAMBDA_ALS,
+                        fused=False)
+    return rows, {"rgb": sm}, {"paper": "4 eq. 10", "lam": LAMBDA_ALS, "n_s": n_s, "k": int(als.U.shape[1]),
+                               "n_meas": int(len(rows)), "condition": sm.condition}
+
+
+# --------------------------------------------------------------------------- the registry
+
+
+@dataclass(frozen=True)
+class StrategySpec:
+    """One entry of :data:`REGISTRY`: a strategy's name, space, source and builder (called with ``arg``)."""
+
+    name: str
+    space: str
+    source: str
+    build: Callable[[_Design, Any], Built]
+    arg: Any = None
+
+
+#: Every strategy of the evaluation, in report order (docs/evaluation.md, "Strategies").
+REGISTRY: tuple[StrategySpec, ...] = (
+    *(StrategySpec(f"{model}-{label}", "log", "single", build, label)
+      for label in ("pmap7", "optimized") for model, build in (("abrdf", _abrdf), ("abtf", _abtf))),
+    StrategySpec("abrdf-projection", "log", "truth", _abrdf_projection),
+    StrategySpec("abtf-projection", "log", "truth", _abtf_projection),
+    StrategySpec("demultiplexed", "log", "demux", _demultiplexed),
+    StrategySpec("projection", "linear", "demux", _projection),
+    StrategySpec("thresholded", "linear", "demux", _thresholded),
+    *(StrategySpec(f"sparse-{kind}-n{n}", "linear", "single", build, n)
+      for n in THESIS_N_S for kind, build in (("tikhonov", _sparse_tikhonov), ("pinv", _sparse_pinv))),
+    StrategySpec("multiplexed-direct", "linear", "mux", _multiplexed),
+    StrategySpec(f"sparse-multiplexed-n{THESIS_N_S[-1]}", "linear", "mux", _sparse_multiplexed),
+)
+
+
+def strategy_names() -> list[str]:
+    """Names of the strategies :func:`build_strategies` makes, in its order (those of :data:`REGISTRY`)."""
+    return [spec.name for spec in REGISTRY]
+
+
+def build_strategies(bases: StrategyBases, geometry: Geometry, light_dir: np.ndarray, view_dir: np.ndarray,
+                     variance: np.ndarray, patterns: np.ndarray, seed: int, *, abrdf_k_fraction: float = 0.75,
+                     sampling_steps: int = 1500) -> tuple[list[Strategy], dict[str, Any]]:
+    """Samplings and solve operators of every strategy of :data:`REGISTRY` for one held-out material.
+
+    Parameters
+    ----------
+    bases : StrategyBases
+        The held-out material's class bases (leave-one-out).
+    geometry : Geometry
+        Layout of the ``n_lv`` rows.
+    light_dir, view_dir : (n_lv, 3) ndarray
+        Directions of every row (the parabolic map, paper 1 Fig. 3b).
+    variance : (n_lv,) ndarray
+        Per-texture variance of the linear demultiplexed RGB, over texels and
+        channels (the thresholded de-noising, VMV §4.1: "unnormalised" data).
+    patterns : (n_p, n_leds) ndarray
+        S-matrix patterns of every view.
+    seed : int
+        Seed of the random-swap samplers (paper 1 Alg. 1).
+    abrdf_k_fraction : float
+        ABRDF bases use at most this fraction of the parabolic-map sample count as vectors.
+    sampling_steps : int
+        Steps of every random-swap sampler.
+
+    Returns
+    -------
+    strategies, sampling : list of Strategy, dict
+        ``sampling`` reports the sample counts, condition numbers and the
+        selected (turntable, LED / pattern) pairs of the sparse strategies.
+    """
+    design = _Design(bases, geometry, light_dir, view_dir, variance, patterns, seed, abrdf_k_fraction,
+                     sampling_steps)
+    strategies = [Strategy(spec.name, spec.space, spec.source, *spec.build(design, spec.arg)) for spec in REGISTRY]
+    return strategies, design.report()

@@ -1,0 +1,94 @@
+"""Leave-one-out evaluation of sparse, multiplexed and combined acquisition (``btf evaluate acquisition``).
+
+Measures every acquisition strategy of the thesis against the full ground
+truth of a simulated database (``docs/evaluation.md``: scale, noise model,
+strategies, claims):
+
+1. **Truth database** (:mod:`.truth`, :func:`ensure_truth_database`): one
+   ``btf-texture`` store per material, rendered straight from the virtual
+   dome's renderer, one Dask task per view.
+2. **Bases** (:mod:`.graph`, :func:`fit_bases`): per-material bases by
+   :func:`tasks.model.fit_material` (one Dask task per material); per
+   held-out material the class bases are merged *without* it
+   (:func:`leave_one_out_bases`), as ``btf build-db``'s leave-one-out does.
+3. **Measurements, reconstruction, scores** (:mod:`.graph`,
+   :func:`evaluate_materials`): one Dask graph over (material, band) tasks,
+   the numerics in :mod:`btfcore.acquisition.band_evaluation` and the
+   strategies in the registry of :mod:`btfcore.acquisition.strategies`.
+4. **Claims and tables** (:mod:`.claims`), **renderings and report**
+   (:mod:`.report`); :mod:`.run` runs the whole evaluation
+   (:func:`evaluate_acquisition`).
+
+:mod:`.config` holds :class:`EvaluationConfig`. Every public name of the
+package's modules used by the flows and tests is importable from here.
+"""
+
+from btfcore.acquisition.band_evaluation import (
+    CHROMA_MAX,
+    LOG_Y_MAX,
+    BandScores,
+    BandTruth,
+    demultiplex_views,
+    finish_scores,
+    noisy_multiplexed,
+    noisy_rows,
+    noisy_single,
+    reconstruct_band,
+    score_band,
+)
+from btfcore.acquisition.strategies import (
+    REGISTRY,
+    THESIS_N_S,
+    THESIS_PAIRS,
+    Geometry,
+    Strategy,
+    StrategyBases,
+    build_strategies,
+    scaled_pairs,
+    strategy_names,
+)
+from tasks.evaluate_acquisition.claims import class_means, claims, overall_means, predicted_times, thesis_tables
+from tasks.evaluate_acquisition.config import (
+    STRUCTURED_CLASSES,
+    TRUTH_KIND,
+    EvaluationConfig,
+    TruthSpec,
+    truth_specs,
+)
+from tasks.evaluate_acquisition.graph import (
+    EVAL_BASES,
+    band_maxima,
+    band_variance,
+    bands,
+    create_reconstruction_store,
+    evaluate_band,
+    evaluate_materials,
+    fit_bases,
+    leave_one_out_bases,
+)
+from tasks.evaluate_acquisition.report import (
+    abrdf_images,
+    env_map_path,
+    render_one,
+    renderings,
+    scale_of,
+    write_acquisition_report,
+)
+from tasks.evaluate_acquisition.run import evaluate_acquisition
+from tasks.evaluate_acquisition.truth import (
+    create_truth_store,
+    ensure_truth_database,
+    prepare_truth_material,
+    render_truth_view,
+)
+
+__all__ = [
+    "CHROMA_MAX", "EVAL_BASES", "LOG_Y_MAX", "REGISTRY", "STRUCTURED_CLASSES", "THESIS_N_S", "THESIS_PAIRS",
+    "TRUTH_KIND", "BandScores", "BandTruth", "EvaluationConfig", "Geometry", "Strategy", "StrategyBases",
+    "TruthSpec", "abrdf_images", "band_maxima", "band_variance", "bands", "build_strategies", "claims",
+    "class_means", "create_reconstruction_store", "create_truth_store", "demultiplex_views", "ensure_truth_database",
+    "env_map_path", "evaluate_acquisition", "evaluate_band", "evaluate_materials", "finish_scores", "fit_bases",
+    "leave_one_out_bases", "noisy_multiplexed", "noisy_rows", "noisy_single", "overall_means", "predicted_times",
+    "prepare_truth_material", "reconstruct_band", "render_one", "render_truth_view", "renderings", "scale_of",
+    "scaled_pairs", "score_band", "strategy_names", "thesis_tables", "truth_specs", "write_acquisition_report",
+]

@@ -1,0 +1,282 @@
+"""The Dask graphs of the acquisition evaluation: per-material bases, then every strategy on every band.
+
+Per held-out material one chain of Dask tasks over bands of texture rows:
+band maxima -> exposure gains -> band moments of the demultiplexed
+measurement -> operators (leave-one-out bases, samplings; once) -> band
+reconstructions and error sums -> scores. All materials' chains are
+submitted at once (one graph). The numerics are
+:mod:`btfcore.acquisition.band_evaluation` and
+:mod:`btfcore.acquisition.strategies`; this module reads and writes the
+stores and wires the tasks.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zarr
+
+from btfcore.acquisition.band_evaluation import (
+    BandScores,
+    BandTruth,
+    Moments,
+    demultiplexed_moments,
+    finish_scores,
+    image_maxima,
+    measure_band,
+    moments_variance,
+    reconstruct_band,
+    score_band,
+)
+from btfcore.acquisition.hadamard import multiplexing_patterns
+from btfcore.acquisition.noise import SensorNoise, exposure_gain
+from btfcore.acquisition.reconstruct import abtf_halo
+from btfcore.acquisition.strategies import Geometry, Strategy, StrategyBases, build_strategies, strategy_names
+from tasks.compute import Progress, run_all, wait_all
+from tasks.evaluate_acquisition.config import EvaluationConfig
+from tasks.model import CHANNELS, LINEAR_SVD, Material, ModelSettings, fit_material, merge_bases, open_model_store
+from tasks.stores.btf import create_btf_store, open_btf_store
+
+#: Bases the evaluation reconstructs with.
+EVAL_BASES = ("log_y", "u_y", "v_y", "abtf_log_y", "als", LINEAR_SVD)
+
+
+# --------------------------------------------------------------------------- bases
+
+
+def fit_bases(model_path: str, materials: Sequence[Material], settings: ModelSettings, client: Any, *,
+              progress: Progress | None = None) -> list[dict[str, Any]]:
+    """Per-material bases of every material (:func:`tasks.model.fit_material`), one Dask task each;
+    a rerun reuses every stored basis whose key is unchanged."""
+    open_model_store(model_path, materials)
+    return run_all(client, fit_material, [(model_path, m, settings, EVAL_BASES) for m in materials], progress)
+
+
+def leave_one_out_bases(model_path: str, materials: Sequence[Material], material_id: str,
+                        settings: ModelSettings) -> dict[str, Any]:
+    """The class bases of ``material_id``'s class merged without it, ``{basis: TruncatedSVD}``.
+
+    Raises
+    ------
+    ValueError
+        When the model store lacks a per-material basis a merge needs (names
+        the group; run the fit again) or the class has no other material.
+    """
+    group = zarr.open_group(model_path, mode="r", zarr_format=3)
+    material = next((m for m in materials if m.material_id == material_id), None)
+    if material is None:
+        raise ValueError(f"{model_path}: material {material_id!r} is not in the database")
+    others = [m for m in materials if m.cls == material.cls and m.material_id != material_id]
+    if not others:
+        raise ValueError(f"class {material.cls!r} has no material besides {material_id}: the leave-one-out "
+                         "bases need another; add materials of that class")
+    for m in materials:
+        for basis in EVAL_BASES:
+            where = f"materials/{m.material_id}/{basis}"
+            if where not in group or "U" not in group[where] or not group[where].attrs.get("key"):
+                raise ValueError(f"{model_path}: basis {where} is missing (an unfinished or other model store); "
+                                 "run the fit again (delete the model store to start over)")
+    merged = merge_bases(group, materials, settings, exclude=material_id, store=False, bases=EVAL_BASES,
+                         classes=[material.cls])
+    return {basis: merged[basis][material.cls] for basis in EVAL_BASES}
+
+
+# --------------------------------------------------------------------------- band tasks
+
+
+def _read_rows(path: str, r0: int, r1: int) -> np.ndarray:
+    return np.asarray(zarr.open_group(path, mode="r", zarr_format=3)["btf"][:, r0:r1], dtype=np.float32)
+
+
+def bands(height: int, band_rows: int) -> list[tuple[int, int]]:
+    """Bands of texture rows, the unit of parallel work (and of the reconstruction stores' chunks)."""
+    return [(r, min(r + band_rows, height)) for r in range(0, height, band_rows)]
+
+
+def band_maxima(path: str, r0: int, r1: int, patterns: np.ndarray, geometry: Geometry) -> tuple[np.ndarray, np.ndarray]:
+    """Brightest noise-free value of every single-light and multiplexed image within texture rows r0:r1."""
+    return image_maxima(_read_rows(path, r0, r1), patterns)
+
+
+def band_variance(path: str, r0: int, r1: int, gains: tuple[np.ndarray, np.ndarray], patterns: np.ndarray,
+                  geometry: Geometry, noise: SensorNoise, seed: Sequence[int]) -> Moments:
+    """(count, mean, M2) per row of the linear demultiplexed RGB (texels and channels) within rows r0:r1."""
+    return demultiplexed_moments(_read_rows(path, r0, r1), r0, gains, patterns, geometry, noise, seed)
+
+
+def evaluate_band(path: str, r0: int, r1: int, strategies: list[Strategy], gains: tuple[np.ndarray, np.ndarray],
+                  patterns: np.ndarray, geometry: Geometry, noise: SensorNoise, seed: Sequence[int],
+                  write: dict[str, str] | None = None) -> dict[str, BandScores]:
+    """Measure, reconstruct and score every strategy on texture rows r0:r1 (one Dask task).
+
+    With ``write`` (``{strategy: store path}``) the reconstructions are also
+    written to those stores (this band owns whole chunks of them).
+    """
+    h = geometry.height
+    halo = abtf_halo(r0, r1, h, 3) if h >= 3 else slice(r0, r1)
+    truth_halo = _read_rows(path, halo.start, halo.stop)
+    truth, single, mux, demux = measure_band(truth_halo, halo.start, r0, r1, gains, patterns, geometry, noise, seed)
+    scores, ref, log_cache = {}, BandTruth.of(truth), {}
+    for strategy in strategies:
+        recon = reconstruct_band(strategy, r0, r1, h, truth_halo, single, mux, halo.start, geometry, demux, log_cache)
+        recon = np.asarray(recon, dtype=np.float32)
+        if not np.all(np.isfinite(recon)):
+            bad = np.unravel_index(int(np.argmin(np.isfinite(recon))), recon.shape)
+            raise ValueError(f"{path}: strategy {strategy.name} produced a non-finite value at "
+                             f"(row {bad[0]}, texel {r0 + bad[1]}, {bad[2]}); check its operator's condition")
+        scores[strategy.name] = score_band(ref, recon)
+        if write and strategy.name in write:
+            group = zarr.open_group(write[strategy.name], mode="r+", zarr_format=3)
+            group["btf"][:, r0:r1] = recon
+            group["written"][r0 // group["btf"].chunks[1]] = 1          # after the data it marks
+    return scores
+
+
+# --------------------------------------------------------------------------- reductions and operators (tasks)
+
+
+def _material_index(material_id: str) -> int:
+    return int(hashlib.sha256(material_id.encode()).hexdigest()[:8], 16)
+
+
+def _reduce_max(parts: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    return np.max([p[0] for p in parts], axis=0), np.max([p[1] for p in parts], axis=0)
+
+
+def _gains(maxima: tuple[np.ndarray, np.ndarray], noise: SensorNoise, path: str) -> tuple[np.ndarray, np.ndarray]:
+    try:
+        return exposure_gain(maxima[0], noise), exposure_gain(maxima[1], noise)
+    except ValueError as exc:
+        raise ValueError(f"{path}: btf: {exc}") from None
+
+
+def _operators(model_path: str, materials: list[Material], material_id: str, settings: ModelSettings,
+               geometry: Geometry, config: EvaluationConfig, variance: np.ndarray, patterns: np.ndarray
+               ) -> tuple[list[Strategy], dict[str, Any]]:
+    material = next(m for m in materials if m.material_id == material_id)
+    b = leave_one_out_bases(model_path, materials, material_id, settings)
+    bases = StrategyBases({c: b[c] for c in CHANNELS}, b["abtf_log_y"], b["als"], b[LINEAR_SVD])
+    group = zarr.open_group(material.path, mode="r", zarr_format=3)
+    return build_strategies(bases, geometry, np.asarray(group["light_dir"][...]), np.asarray(group["view_dir"][...]),
+                            variance, patterns, config.seed + _material_index(material_id) % 100000,
+                            abrdf_k_fraction=config.abrdf_k_fraction, sampling_steps=config.sampling_steps)
+
+
+def _first(pair: tuple) -> Any:
+    return pair[0]
+
+
+def _strategy_info(pair: tuple[list[Strategy], dict[str, Any]]) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The reportable part of the operators (not the operators themselves)."""
+    return {s.name: s.info for s in pair[0]}, pair[1]
+
+
+def _reduce_scores(parts: list[dict[str, BandScores]]) -> dict[str, BandScores]:
+    out: dict[str, BandScores] = {}
+    for part in parts:
+        for name, s in part.items():
+            out[name] = out.get(name, BandScores()).add(s)
+    return out
+
+
+def _geometry(material: Material) -> Geometry:
+    attrs = dict(zarr.open_group(material.path, mode="r", zarr_format=3).attrs)
+    tcl = attrs.get("turntable_cameras_leds")
+    if not tcl or int(np.prod(tcl)) != material.n_lv:
+        raise ValueError(f"{material.path}: attribute turntable_cameras_leds is {tcl!r}, which does not give its "
+                         f"{material.n_lv} light/view pairs; the evaluation needs the (turntable, camera, light) "
+                         "layout to simulate multiplexed shots (write the store with ensure_truth_database)")
+    return Geometry(int(tcl[0]), int(tcl[1]), int(tcl[2]), *material.texture_shape)
+
+
+# --------------------------------------------------------------------------- reconstruction stores
+
+
+def create_reconstruction_store(path: Path, truth_path: str, band_rows: int, strategy: str) -> str:
+    """An empty ``btf-texture`` store for one strategy's reconstruction (chunks = bands), rows as the truth's."""
+    truth = open_btf_store(truth_path, require_complete=False)
+    n_lv, h, w, _ = truth.btf.shape
+    create_btf_store(path, {"units": truth.attrs["units"], "lv_order": truth.attrs["lv_order"],
+                            "reconstruction_of": truth_path, "strategy": strategy,
+                            "ingest_hash": f"reconstruction-{strategy}"},
+                     light_dir=truth.light_dir, view_dir=truth.view_dir, lv_index=truth.group["lv_index"][...],
+                     texture_shape=(h, w), rows_per_chunk=n_lv, band=band_rows,
+                     written_shape=(len(bands(h, band_rows)),))
+    return str(path)
+
+
+# --------------------------------------------------------------------------- the graph
+
+
+def _submit_material(client: Any, model_path: str, materials: list[Material], m: Material, geometry: Geometry,
+                     config: EvaluationConfig, noise: SensorNoise, write: dict[str, str] | None) -> tuple[Any, Any, Any]:
+    """Submit one held-out material's chain of tasks; futures of its (scores, (info, sampling), maxima)."""
+    patterns = multiplexing_patterns(geometry.n_leds)
+    seed = (config.seed, _material_index(m.material_id) % (1 << 31))
+    parts = bands(geometry.height, config.band_rows)
+
+    def each_band(fn: Any, *args: Any) -> list[Any]:
+        return [client.submit(fn, m.path, r0, r1, *args, pure=False) for r0, r1 in parts]
+
+    maxima = client.submit(_reduce_max, each_band(band_maxima, patterns, geometry), pure=False)
+    gains = client.submit(_gains, maxima, noise, m.path, pure=False)
+    variance = client.submit(moments_variance, each_band(band_variance, gains, patterns, geometry, noise, seed),
+                             pure=False)
+    ops = client.submit(_operators, model_path, materials, m.material_id, config.model_settings(), geometry, config,
+                        variance, patterns, pure=False)
+    strategies = client.submit(_first, ops, pure=False)
+    info = client.submit(_strategy_info, ops, pure=False)
+    scores = client.submit(_reduce_scores, each_band(evaluate_band, strategies, gains, patterns, geometry, noise,
+                                                     seed, write), pure=False)
+    return scores, info, maxima
+
+
+def evaluate_materials(model_path: str, materials: list[Material], config: EvaluationConfig, client: Any,
+                       out_dir: str | os.PathLike, *, render_ids: Sequence[str] = (),
+                       progress: Progress | None = None) -> dict[str, Any]:
+    """Every strategy on every held-out material: one Dask graph of (material, band) tasks.
+
+    Per material: band maxima -> exposure gains -> band variances of the
+    demultiplexed measurement -> operators (leave-one-out bases, samplings) ->
+    band reconstructions and error sums -> scores. Materials in
+    ``render_ids`` also get their reconstructions written to
+    ``out_dir/reconstructions/<material>/<strategy>.zarr``.
+
+    Returns
+    -------
+    result : dict
+        ``{"materials": {id: {"class", "scores": {strategy: metrics}, "strategies": {strategy: info},
+        "sampling": ...}}, "reconstructions": {id: {strategy: path}}}``.
+    """
+    device_noise = config.build_device().sensor
+    noise = SensorNoise(float(device_noise.full_well_e), float(device_noise.read_noise_e), config.fill)
+    out_dir = Path(out_dir)
+    finals, stores = {}, {}
+    for m in materials:
+        geometry = _geometry(m)
+        write = None
+        if m.material_id in render_ids:
+            folder = out_dir / "reconstructions" / m.material_id
+            folder.mkdir(parents=True, exist_ok=True)
+            write = {name: create_reconstruction_store(folder / f"{name}.zarr", m.path, config.band_rows, name)
+                     for name in strategy_names()}
+            stores[m.material_id] = write
+        finals[m.material_id] = _submit_material(client, model_path, materials, m, geometry, config, noise, write)
+    wait_all([f for trio in finals.values() for f in trio], progress)
+    result: dict[str, Any] = {"materials": {}, "reconstructions": stores}
+    for m in materials:
+        scores_f, ops_f, maxima_f = finals[m.material_id]
+        scores, (info, sampling), maxima = scores_f.result(), ops_f.result(), maxima_f.result()
+        result["materials"][m.material_id] = {
+            "class": m.cls,
+            "scores": {name: finish_scores(scores[name], maxima[0]) for name in strategy_names()},
+            "strategies": info, "sampling": sampling}
+    for material_stores in stores.values():
+        for path in material_stores.values():
+            zarr.open_group(path, mode="r+", zarr_format=3).attrs.update({"complete": True})
+    return result
