@@ -323,15 +323,12 @@ def _calibration(args: argparse.Namespace):
 
 
 def _export_exr(args: argparse.Namespace) -> int:
-    import zarr
-
     from tasks.export import export_exr, parse_selection
+    from tasks.stores.btf import open_btf_store
 
     try:
-        group = zarr.open_group(args.btf, mode="r", zarr_format=3)
-        if group.attrs.get("schema") != "btf-texture":
-            raise ValueError(f"not a BTF store (schema {group.attrs.get('schema')!r}); give the output of `btf ingest`")
-        files = export_exr(args.btf, args.out, parse_selection(args.lv, group["btf"].shape[0]),
+        store = open_btf_store(args.btf, require_complete=False, produced_by="`btf ingest`")
+        files = export_exr(args.btf, args.out, parse_selection(args.lv, store.btf.shape[0]),
                            keep_nonfinite=args.keep_nonfinite)
     except (ValueError, KeyError, FileNotFoundError) as exc:
         text = (f"no array {exc} in the store; give the output of `btf ingest`" if isinstance(exc, KeyError)

@@ -52,6 +52,7 @@ from tasks.compute import run_all
 from tasks.integrity import create_array
 from tasks.staging import begin_store, finish_store
 from tasks.stores import to_json_attr
+from tasks.stores.btf import SCHEMA_NAME as BTF_SCHEMA_NAME
 
 SCHEMA_NAME = "btf-model"
 SCHEMA_VERSION = "1.0"
@@ -150,7 +151,7 @@ def discover(db: str | os.PathLike, class_map: dict[str, str] | None = None,
             problems.append(f"{path}: not a readable Zarr group ({exc})")
             continue
         attrs = dict(group.attrs)
-        if attrs.get("schema") != "btf-texture" or "resampled_from" in attrs:
+        if attrs.get("schema") != BTF_SCHEMA_NAME or "resampled_from" in attrs:
             continue                                             # other stores may share the folder
         if not attrs.get("complete"):
             problems.append(f"{path}: the ingest is unfinished (complete = false); run `btf ingest` again")
