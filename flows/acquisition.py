@@ -28,7 +28,7 @@ def reconstruct_stage(measurement: str, model: str, out: str, settings: Reconstr
     from flows.progress import progress_bar
     from tasks.reconstruct import reconstruct_store
 
-    bar, update = progress_bar("reconstruct", progress)
+    bar, update = progress_bar("reconstruct", progress, unit="band")
     with bar, Client(scheduler_address, set_as_default=False) as client:
         return reconstruct_store(measurement, model, out, settings, client, overwrite=overwrite,
                                  calibration=calibration, progress=update)

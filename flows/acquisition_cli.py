@@ -150,6 +150,7 @@ def run_render(args: argparse.Namespace) -> int:
 
 def _sample(args: argparse.Namespace) -> dict[str, Any]:
     from btfcore.dome import get_device
+    from flows.progress import say
     from tasks.sample import sample_model, write_samples
 
     show = not getattr(args, "no_progress", False)
@@ -159,7 +160,7 @@ def _sample(args: argparse.Namespace) -> dict[str, Any]:
         now = time.perf_counter()
         if show and (now - last[0] > 0.5 or step == 0):
             last[0] = now
-            print(f"btf sample: {phase} step {step}: kappa {kappa:.5g}", file=sys.stderr, flush=True)
+            say(f"btf sample: {phase} step {step}: kappa {kappa:.5g}")
 
     device = get_device(args.device) if args.device else None
     doc = sample_model(args.model, args.cls, args.basis, args.n, method=args.method,
@@ -219,10 +220,11 @@ def _plan(args: argparse.Namespace) -> dict[str, Any]:
     t = predict_time(plan, params)
     breakdown = {name: round(float(v), 1) for name, v in t.to_dict().items()
                  if name.endswith("_s") and name != "total_s"}
-    print(f"btf plan: {args.strategy} on {device.name}: {t.n_shots} shots, {t.n_exposures} exposures, "
-          f"predicted {t.total_h:.2f} h ({t.total_s / 60:.1f} min)", file=sys.stderr)
-    for name, v in breakdown.items():
-        print(f"  {name:22s} {v:12.1f} s", file=sys.stderr)
+    if not getattr(args, "quiet", False):
+        print(f"btf plan: {args.strategy} on {device.name}: {t.n_shots} shots, {t.n_exposures} exposures, "
+              f"predicted {t.total_h:.2f} h ({t.total_s / 60:.1f} min)", file=sys.stderr)
+        for name, v in breakdown.items():
+            print(f"  {name:22s} {v:12.1f} s", file=sys.stderr)
     return {"command": "plan", "device": device.name, "strategy": plan.strategy,
             "material": args.material, "out": str(out.resolve()),
             "plan_json": str((out / "plan.json").resolve()), "plan_csv": str((out / "plan.csv").resolve()),

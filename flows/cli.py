@@ -7,6 +7,10 @@ execution profile (``infra/local.yaml`` unless ``--cluster`` or
 ``$BTF_CLUSTER_CONFIG`` names another). Everything a command can check is
 checked before Prefect and the cluster start (:func:`_preflight`), and every
 error reaches the user as one message without a traceback (:func:`main`).
+A computing command prints its first line before anything slow is imported (the
+parser imports nothing of a command's until that command parses,
+:class:`CommandParser`), then what it starts (:func:`_starting_line`); the global
+options are accepted before and after the command (:mod:`flows.arguments`).
 Exit codes: 0 success, 1 a failed run (a full disk, a lost worker: running the
 same command again resumes it), 2 bad input or usage (the message names the
 file, array and index and what to do), 3 Prefect or the cluster could not start.
@@ -15,17 +19,22 @@ file, array and index and what to do), 3 Prefect or the cluster could not start.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import errno
 import json
+import os
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from flows import arguments
 from flows.acquisition_cli import (PLAN_HELP, RENDER_HELP, SAMPLE_HELP, add_plan_arguments, add_render_arguments,
                                    add_sample_arguments, run_plan, run_render, run_sample)
+from flows.progress import say
+from flows.server import SERVER_HELP, add_server_arguments, run_server
 
 EXIT_FAILED = 1
 EXIT_BAD_INPUT = 2
@@ -46,6 +55,10 @@ with a temporary Prefect server).
 
 
 EPILOG = """\
+global options (--cluster, --no-progress, --quiet, --verbose, --log-level) may
+also follow the command: `btf ingest CAPTURE --out BTF --quiet`. Progress goes
+to stderr: bars in a terminal, elsewhere (a job log, CI, nohup) timestamped
+lines at the start of each stage, about every 10 % and at its end.
 exit codes: 0 success; 1 a failed run (running the same command again resumes
 it); 2 bad input or usage (the message names the file, array and index and
 what to do; nothing was started or written); 3 Prefect or the Dask cluster
@@ -100,198 +113,38 @@ class Command:
         return self.flow is not None and (self.cluster_when is None or self.cluster_when(args))
 
 
-def _add_simulation_options(p: argparse.ArgumentParser) -> None:
-    from btfcore.dome import BAYER_PATTERNS, DEVICE_NAMES
-    from btfcore.simulate.materials import MATERIAL_CLASSES
+class CommandParser(argparse.ArgumentParser):
+    """A subcommand's parser that adds the command's arguments (and the global options again) only when
+    it parses: ``btf --help`` and ``btf ingest`` build no other command's arguments and import nothing of
+    theirs (``btf simulate``'s choices come from btfcore)."""
 
-    p.add_argument("--device", default="tiny", choices=DEVICE_NAMES,
-                   help="dome preset: tiny (tests, seconds), bonn-dome2 (11 cameras x 198 LEDs x 12 "
-                        "turntable positions = 26,136 pairs), ubo-dome1 (151 x 151) [default: tiny]")
-    p.add_argument("--materials", type=int, default=6, metavar="N",
-                   help=f"number of materials; classes cycle through {', '.join(MATERIAL_CLASSES)} [default: 6]")
-    p.add_argument("--seed", type=int, default=0, help="root seed of materials and noise [default: 0]")
-    p.add_argument("--illumination", default="single", choices=("single", "multiplexed", "both"),
-                   help="single-LED patterns, S-matrix multiplexed patterns, or both [default: single]")
-    p.add_argument("--classes", default=None, metavar="A,B,...",
-                   help="comma-separated material classes to cycle through; 'white-standard' simulates the "
-                        "flat white target of a radiometric calibration [default: the six material classes]")
-    p.add_argument("--bayer", default=None, choices=BAYER_PATTERNS,
-                   help="override the device's Bayer layout")
-    p.add_argument("--texture-size", type=int, default=None, metavar="PX",
-                   help="override the rectified texture side (ground truth is also written at 2x)")
-    p.add_argument("--turntable", type=int, default=None, metavar="N",
-                   help="simulate only the first N turntable positions (a pruned run)")
-    p.add_argument("--psf-sigma", type=float, default=0.0, metavar="PX",
-                   help="Gaussian point spread function of the cameras, sigma in raw pixels [default: 0, off]")
+    def __init__(self, *args: Any, add_arguments: Callable[[argparse.ArgumentParser], None] | None = None,
+                 **kwargs: Any):
+        super().__init__(*args, **kwargs)
+        self._add_arguments = add_arguments
 
-
-def _simulate_arguments(p: argparse.ArgumentParser) -> None:
-    """The options of ``btf simulate``: the simulation's and the output's."""
-    _add_simulation_options(p)
-    p.add_argument("--out", required=True, metavar="PATH", help="output folder of the database")
-    p.add_argument("--overwrite", action="store_true", help="replace finished stores of another config")
-    p.add_argument("--plan", default=None, metavar="PLAN.json",
-                   help="execute an acquisition plan (`btf plan` JSON or CSV): per turntable position its shots "
-                        "(LEDs on, cameras, shutter brackets) instead of --illumination and automatic brackets; "
-                        "`btf ingest` then writes a BTF store (full sets) or a measurement store "
-                        "(docs/measurement-store.md)")
-
-
-def _demo_arguments(p: argparse.ArgumentParser) -> None:
-    """The arguments of ``btf demo``."""
-    p.add_argument("--out", default="demo-output", metavar="DIR", help="output folder [default: demo-output]")
-    p.add_argument("--seed", type=int, default=0, help="root seed [default: 0]")
-    p.add_argument("--materials", type=int, default=12, metavar="N",
-                   help="materials to simulate; the model database is built when there are at least two per "
-                        "class [default: 12]")
-
-
-def _import_raw_arguments(p: argparse.ArgumentParser) -> None:
-    """The arguments of ``btf import-raw``."""
-    p.add_argument("folder", metavar="FOLDER", help="folder holding the raw files")
-    p.add_argument("--manifest", required=True, metavar="FILE", help="CSV or JSON manifest")
-    p.add_argument("--device", default=None, help="dome calibration preset (tiny, bonn-dome2, ubo-dome1)")
-    p.add_argument("--calibration", default=None, metavar="JSON",
-                   help="dome calibration file (Device.to_json layout); overrides --device")
-    p.add_argument("--out", required=True, metavar="STORE", help="capture store to write (.zarr)")
-    p.add_argument("--overwrite", action="store_true", help="replace a finished store at --out")
-
-
-def _ingest_arguments(p: argparse.ArgumentParser) -> None:
-    """The arguments of ``btf ingest``."""
-    p.add_argument("capture", metavar="CAPTURE", help="capture store (.zarr)")
-    p.add_argument("--out", required=True, metavar="BTF", help="BTF store to write (.zarr)")
-    _add_calibration_args(p)
-    p.add_argument("--overwrite", action="store_true",
-                   help="recompute and replace the output at --out (kept until the new one is complete and checked)")
-
-
-def _resample_arguments(p: argparse.ArgumentParser) -> None:
-    """The arguments of ``btf resample``."""
-    p.add_argument("btf", metavar="BTF", help="finished BTF store from `btf ingest` (.zarr)")
-    p.add_argument("--out", required=True, metavar="BTF2", help="resampled BTF store to write (.zarr)")
-    p.add_argument("--sampling", default="ubo2014", metavar="ubo2014|FILE.json",
-                   help='target directions: ubo2014 (151 lights x 151 views) or a JSON file {"light_dirs": '
-                        '[[x, y, z], ...], "view_dirs": [[x, y, z], ...]} in the sample frame (z = surface '
-                        'normal, z > 0; normalised here) [default: ubo2014]')
-    p.add_argument("--overwrite", action="store_true", help="replace an output of another source or sampling")
-
-
-def _build_db_arguments(p: argparse.ArgumentParser) -> None:
-    """The arguments of ``btf build-db``."""
-    p.add_argument("db", metavar="DB", help="folder of ingested BTF stores (.zarr), one per material")
-    p.add_argument("--out", required=True, metavar="DIR", help="output folder")
-    p.add_argument("--classes", default=None, metavar="JSON",
-                   help='material classes for stores that do not carry one: {"<store name>": "<class>", ...}')
-    p.add_argument("--k-log-y", type=int, default=None, metavar="K",
-                   help="per-material log Y basis vectors [default: the thesis' 200, capped by the data]")
-    p.add_argument("--k-chroma", type=int, default=None, metavar="K",
-                   help="per-material U/Y and V/Y basis vectors [default: 100, capped by the data]")
-    p.add_argument("--k-merged", type=int, default=None, metavar="K",
-                   help="basis vectors kept by each merge [default: 2048, capped by the data]")
-
-
-def _schedule_arguments(p: argparse.ArgumentParser) -> None:
-    """The arguments of ``btf schedule``."""
-    p.add_argument("what", choices=("build-db",), help="the job to schedule")
-    p.add_argument("db", metavar="DB", help="folder of ingested BTF stores")
-    p.add_argument("--out", required=True, metavar="DIR", help="output folder of the model database")
-    p.add_argument("--cron", required=True, metavar="EXPR", help='cron expression, e.g. "0 3 * * *" (03:00 daily)')
-    p.add_argument("--name", default="build-db", help="deployment name [default: build-db]")
-    p.add_argument("--classes", default=None, metavar="JSON", help="material classes for stores without one")
-
-
-def _export_exr_arguments(p: argparse.ArgumentParser) -> None:
-    """The arguments of ``btf export-exr``."""
-    p.add_argument("btf", metavar="BTF", help="BTF store (.zarr)")
-    p.add_argument("--out", required=True, metavar="DIR", help="output folder")
-    p.add_argument("--lv", default="all", metavar="ROWS",
-                   help="rows to export: 'all' or a comma list of indices and ranges, e.g. 0,5,10-20 [default: all]")
-    p.add_argument("--keep-nonfinite", action="store_true",
-                   help="write textures with NaN or Inf texels as they are instead of refusing them")
-
-
-def _evaluate_arguments(p: argparse.ArgumentParser) -> None:
-    """The arguments of ``btf evaluate``."""
-    p.add_argument("what", choices=("ingest", "acquisition"),
-                   help="ingest: a BTF store from `btf ingest` against its capture's truth; acquisition: leave-one-out "
-                        "evaluation of sparse, multiplexed and sparse+multiplexed acquisition on a simulated truth "
-                        "database (--db, --out; docs/evaluation.md)")
-    p.add_argument("--truth", default=None, metavar="SIM", help="ingest: simulated capture store (with truth/)")
-    p.add_argument("--btf", default=None, metavar="BTF", help="ingest: BTF store from `btf ingest`")
-    p.add_argument("--db", default=None, metavar="TRUTH_DB_DIR",
-                   help="acquisition: folder of truth BTF stores; missing ones are rendered into it")
-    p.add_argument("--out", default=None, metavar="DIR", help="acquisition: output folder (report.json, report.html)")
-    p.add_argument("--eval-device", default="bonn-dome2", metavar="NAME",
-                   help="acquisition: dome preset [default: bonn-dome2]")
-    p.add_argument("--eval-turntable", type=int, default=2, metavar="N",
-                   help="acquisition: first N turntable positions [default: 2, 4,356 light/view pairs]")
-    p.add_argument("--eval-texture", type=int, default=32, metavar="PX", help="acquisition: texture side [default: 32]")
-    p.add_argument("--eval-materials-per-class", type=int, default=2, metavar="N",
-                   help="acquisition: materials per class (>= 2 for leave-one-out) [default: 2]")
-    p.add_argument("--eval-seed", type=int, default=0, metavar="S", help="acquisition: root seed [default: 0]")
-    p.add_argument("--eval-render", type=int, default=1, metavar="N",
-                   help="acquisition: materials (one per class, structured classes first) whose reconstructions "
-                        "are rendered and scored by rendering PSNR; each adds one reconstruction store per "
-                        "strategy and its renderings [default: 1]")
-    p.add_argument("--report", default="report.json", metavar="PATH", help="where to write the metrics [default: report.json]")
-
-
-def _validate_arguments(p: argparse.ArgumentParser) -> None:
-    """The arguments of ``btf validate``."""
-    p.add_argument("stores", nargs="+", metavar="STORE")
-    p.add_argument("--allow-incomplete", action="store_true", help="accept stores whose run has not finished")
-    p.add_argument("--deep", action="store_true",
-                   help="read every chunk and verify its checksum (reads the whole store, one chunk at a time)")
-
-
-def _reconstruct_arguments(p: argparse.ArgumentParser) -> None:
-    """The arguments of ``btf reconstruct``."""
-    p.add_argument("measurement", metavar="MEASUREMENT", help="measurement store or BTF store (.zarr)")
-    p.add_argument("--model", required=True, metavar="MODEL_DIR", help="`btf build-db` output folder")
-    p.add_argument("--class", dest="cls", required=True, metavar="CLS", help="material class whose basis is used")
-    p.add_argument("--basis", default="als", choices=("als", "log_y", "abtf_log_y"),
-                   help="als (linear RGB; any measurement), log_y or abtf_log_y (single-light only) [default: als]")
-    p.add_argument("--method", default="pinv", choices=("pinv", "tikhonov", "direct", "projection", "thresholded"),
-                   help="pinv/tikhonov: sparse single-light; direct: multiplexed (paper 4 eq. 10); projection/"
-                        "thresholded: denoise a full demultiplexable measurement [default: pinv]")
-    p.add_argument("--lam", type=float, default=None, metavar="L",
-                   help="lambda of lambda*Sigma^-1 [default: tikhonov 0.01 for als, 40 for log bases (the thesis); direct 0]")
-    p.add_argument("--k", type=int, default=None, metavar="K", help="use only the first K basis vectors")
-    p.add_argument("--out", required=True, metavar="BTF", help="BTF store to write (.zarr)")
-    p.add_argument("--overwrite", action="store_true", help="replace another store at --out once the new one is complete")
-    _add_calibration_args(p, " (for a model of corrected BTFs; the measurement store itself is uncorrected: "
-                             "single-light rows are corrected before the solve, multiplexed rows get one operator "
-                             "per colour channel)")
+    def parse_known_args(self, args=None, namespace=None):  # noqa: D102  (argparse's)
+        if self._add_arguments is not None:
+            add, self._add_arguments = self._add_arguments, None
+            add(self)
+            arguments.add_global_options(self, after_command=True)
+        return super().parse_known_args(args, namespace)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The ``btf`` parser: the global options and one subparser per entry of :data:`COMMANDS`."""
+    """The ``btf`` parser: the global options and one subparser per entry of :data:`COMMANDS`.
+
+    The global options are accepted before and after the subcommand (:class:`CommandParser`).
+    """
     parser = argparse.ArgumentParser(prog="btf", description=DESCRIPTION, epilog=EPILOG,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--cluster", default=None, metavar="PROFILE",
-                        help="execution profile YAML (cluster kind, workers, memory, Prefect API) "
-                             "[default: $BTF_CLUSTER_CONFIG or infra/local.yaml]")
-    parser.add_argument("--no-progress", action="store_true", help="hide progress bars")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    arguments.add_global_options(parser)
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True, parser_class=CommandParser)
     for command in COMMANDS.values():
         raw = {"formatter_class": argparse.RawDescriptionHelpFormatter} if command.raw_description else {}
-        command.add_arguments(sub.add_parser(command.name, help=command.help, description=command.description,
-                                             **raw))
+        sub.add_parser(command.name, help=command.help, description=command.description,
+                       add_arguments=command.add_arguments, **raw)
     return parser
-
-
-def _add_calibration_args(p: argparse.ArgumentParser, note: str = "") -> None:
-    """``--white``, ``--white-albedo`` and ``--colour-matrix`` of ``btf ingest`` and ``btf reconstruct``."""
-    p.add_argument("--white", default=None, metavar="WHITE_BTF",
-                   help="radiometric correction: the uncorrected `btf ingest` output of a white-standard capture "
-                        "on the same dome (simulate one with --classes white-standard); each LED's RGB gain is "
-                        "measured on it and divided out, so the BTF is in the ground truth's unit" + note)
-    p.add_argument("--white-albedo", type=float, default=0.99, metavar="A",
-                   help="albedo of the white standard [default: 0.99]")
-    p.add_argument("--colour-matrix", default=None, metavar="JSON",
-                   help='camera colour matrix applied after the LED gains: {"matrix": [[...], [...], [...]]}, '
-                        "3x3 or 3x4 (affine)")
 
 
 def _simulation_config(args: argparse.Namespace):
@@ -367,8 +220,6 @@ def _evaluate(args: argparse.Namespace) -> int:
 
 
 def _schedule(args: argparse.Namespace) -> int:
-    import os
-
     if not os.environ.get("PREFECT_API_URL"):
         print("btf schedule: no Prefect server: set PREFECT_API_URL to a running server (start one with "
               "`prefect server start`); a cron schedule does not fire on the temporary server of a single run",
@@ -572,7 +423,7 @@ COMMANDS: dict[str, Command] = {command.name: command for command in (
                         "(OUT/<id>.zarr, ground truth in its truth/ group), OUT/database.json, OUT/report.json and "
                         "OUT/report.html. An unfinished run resumes where it stopped; finished stores are never "
                         "overwritten unless --overwrite is given.",
-            add_arguments=_simulate_arguments, prepare=_prepare_simulate, flow=_simulate_flow,
+            add_arguments=arguments.simulate, prepare=_prepare_simulate, flow=_simulate_flow,
             inputs={"plan": "--plan", "classes": "--classes"}),
     Command("demo", help="the main job on the embedded default data",
             description="The main job on the embedded virtual dome: simulate two materials per class on the tiny "
@@ -582,14 +433,14 @@ COMMANDS: dict[str, Command] = {command.name: command for command in (
                         "(OUT/acquisition) and write OUT/report.json and OUT/report.html. With --materials below 12 "
                         "(two per class) the model database and the evaluation are skipped. Re-running resumes or "
                         "reuses finished work.",
-            add_arguments=_demo_arguments, flow=_demo_flow),
+            add_arguments=arguments.demo, flow=_demo_flow),
     Command("import-raw", help="import camera raw files (DNG, any LibRaw format) into a capture store",
             description="Read a folder of camera raw files through LibRaw and write a capture store. The manifest "
                         "(CSV with header file,turntable,camera,illumination,exposure[,exposure_time][,role], or a "
                         "JSON list of such objects) maps each file to its place; exposure times missing from it are "
                         "read from the files. Everything is checked first and every problem is listed before any "
                         "work starts.",
-            add_arguments=_import_raw_arguments, prepare=_prepare_import_raw, flow=_import_raw_flow,
+            add_arguments=arguments.import_raw, prepare=_prepare_import_raw, flow=_import_raw_flow,
             inputs={"folder": "FOLDER", "manifest": "--manifest", "calibration": "--calibration"}),
     Command("ingest", help="capture store -> BTF store (HDR, demosaic, rectify, demultiplex)",
             description="Process every view of a capture store: merge the exposure brackets in the Bayer domain, "
@@ -598,7 +449,7 @@ COMMANDS: dict[str, Command] = {command.name: command for command in (
                         "truth for simulated captures). Resumes an unfinished run; never overwrites another finished "
                         "output. With --overwrite the new store is built beside it (BTF-stem.partial.zarr) and "
                         "replaces it, with its report, only once complete and checked.",
-            add_arguments=_ingest_arguments, prepare=_prepare_ingest, flow=_ingest_flow,
+            add_arguments=arguments.ingest, prepare=_prepare_ingest, flow=_ingest_flow,
             inputs={"capture": "CAPTURE", "white": "--white", "colour_matrix": "--colour-matrix"}),
     Command("resample", help="BTF store -> BTF store on a common light x view sampling",
             description="Resample a finished BTF store (from `btf ingest`) to a common light x view sampling: every "
@@ -612,7 +463,7 @@ COMMANDS: dict[str, Command] = {command.name: command for command in (
                         "store of another source or sampling at --out is never overwritten unless --overwrite, which "
                         "builds the new store beside it (BTF2-stem.partial.zarr) and replaces the old one only once "
                         "it is complete.",
-            add_arguments=_resample_arguments, prepare=_prepare_resample, flow=_resample_flow,
+            add_arguments=arguments.resample, prepare=_prepare_resample, flow=_resample_flow,
             inputs={"btf": "BTF", "sampling": "--sampling"}),
     Command("build-db", help="model database: per-material bases, class and global merges, ABTF bases",
             description="Fit the linear models of a database of ingested BTFs (every finished `btf ingest` store in "
@@ -621,24 +472,24 @@ COMMANDS: dict[str, Command] = {command.name: command for command in (
                         "ABTF patch bases. Writes OUT/model.zarr, OUT/report.json (thesis Table 1 from a "
                         "leave-one-out evaluation) and OUT/report.html. A rerun reuses every basis whose inputs did "
                         "not change, so adding a material recomputes only it, its class and the global merge.",
-            add_arguments=_build_db_arguments, prepare=_prepare_build_db, flow=_build_db_flow,
+            add_arguments=arguments.build_db, prepare=_prepare_build_db, flow=_build_db_flow,
             inputs={"db": "DB", "classes": "--classes"}),
     Command("schedule", help="serve a scheduled deployment (cron) of a database build",
             description="Serve a Prefect deployment that runs `btf build-db DB --out OUT` on a cron schedule, each "
                         "run on the Dask cluster of --cluster and incremental (only new or changed materials are "
                         "fitted). Needs a running Prefect server: set PREFECT_API_URL (e.g. `prefect server start` "
                         "elsewhere); cron schedules do not fire on a temporary server. Runs until stopped.",
-            add_arguments=_schedule_arguments, run=_schedule, inputs={"db": "DB", "classes": "--classes"}),
+            add_arguments=arguments.schedule, run=_schedule, inputs={"db": "DB", "classes": "--classes"}),
     Command("export-exr", help="write BTF textures as OpenEXR files",
             description="Write selected (or all) textures of a BTF store (from `btf ingest`) as float32 RGB OpenEXR "
                         "files named lv<row>_t<turntable>_c<camera>_l<light>.exr, with the light and view directions "
                         "in each header. Textures with NaN or Inf texels are refused (the message names the rows and "
                         "counts) before any file is written, unless --keep-nonfinite.",
-            add_arguments=_export_exr_arguments, run=_export_exr, inputs={"btf": "BTF"}),
+            add_arguments=arguments.export_exr, run=_export_exr, inputs={"btf": "BTF"}),
     Command("evaluate", help="measure a result against the simulator's ground truth",
             description="Compare a result with the ground truth of a simulated capture and print the metrics as "
                         "JSON; they are also written to --report.",
-            add_arguments=_evaluate_arguments, run=_evaluate, prepare=_prepare_evaluate,
+            add_arguments=arguments.evaluate, run=_evaluate, prepare=_prepare_evaluate,
             flow=_evaluate_acquisition_flow, cluster_when=_is_acquisition,
             inputs={"btf": "--btf", "db": "DB", "truth": "--truth"},
             outputs={"out": "--out", "report": "--report"}),
@@ -650,7 +501,7 @@ COMMANDS: dict[str, Command] = {command.name: command for command in (
                         "corrupt, truncated or missing one (array and chunk index). A store written before chunk "
                         "checksums were added is reported as such: --deep can then only find unreadable chunks, not "
                         "changed bytes.",
-            add_arguments=_validate_arguments, run=_validate, outputs={}),
+            add_arguments=arguments.validate, run=_validate, outputs={}),
     Command("reconstruct", help="measurement store + model basis -> full BTF store",
             description="Reconstruct a full BTF from a measurement store (`btf ingest` of a sparse or multiplexed "
                         "plan capture) or a demultiplexed BTF store, with a class basis of the model database (`btf "
@@ -660,7 +511,7 @@ COMMANDS: dict[str, Command] = {command.name: command for command in (
                         "the settings and, for a simulated capture, the errors against the ground truth. Log bases "
                         "need single-light measurements; multiplexed ones use --basis als --method direct "
                         "(docs/measurement-store.md).",
-            add_arguments=_reconstruct_arguments, prepare=_prepare_reconstruct, flow=_reconstruct_flow,
+            add_arguments=arguments.reconstruct, prepare=_prepare_reconstruct, flow=_reconstruct_flow,
             inputs={"measurement": "MEASUREMENT", "model": "--model", "white": "--white",
                     "colour_matrix": "--colour-matrix"}),
     Command("sample", help="sparse sampling: which light/view pairs to measure (kappa-optimised)",
@@ -672,6 +523,8 @@ COMMANDS: dict[str, Command] = {command.name: command for command in (
     Command("render", help="render a BTF store on a sphere, cylinder or plane to a PNG",
             description=RENDER_HELP, raw_description=True, add_arguments=add_render_arguments, run=run_render,
             inputs={"btf": "BTF", "env": "--env"}),
+    Command("server", help="start, stop or show a local Prefect server that later commands reuse",
+            description=SERVER_HELP, add_arguments=add_server_arguments, run=run_server, outputs={}),
 )}
 
 #: Inputs that are folders of inputs: an output may be created inside them (``raws/capture.zarr``).
@@ -750,36 +603,89 @@ def _error_message(exc: BaseException, args: argparse.Namespace) -> tuple[str, i
 
 def main(argv: Sequence[str] | None = None) -> int:
     """The ``btf`` command: exit 0 success, 1 a failed run, 2 bad input or usage, 3 no runtime."""
-    import os
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.quiet and (args.verbose or args.log_level):
+        parser.error("--quiet shows errors only: give it without --verbose and --log-level")
+    args.no_progress = args.no_progress or args.quiet
+    with _library_log_level(args):
+        try:
+            return _main(args)
+        except KeyboardInterrupt:
+            print(f"btf {args.command}: interrupted; run the same command again to resume", file=sys.stderr)
+            return 130
+        except Exception as exc:  # every error reaches the user as one message, never as a traceback
+            from flows.runtime import RuntimeUnavailable
+            if os.environ.get("BTF_DEBUG"):
+                raise
+            if isinstance(exc, RuntimeUnavailable):
+                message, code = str(exc), EXIT_RUNTIME
+            else:
+                message, code = _error_message(exc, args)
+            print(f"btf {args.command}: {message}", file=sys.stderr)
+            return code
 
-    args = build_parser().parse_args(argv)
+
+@contextlib.contextmanager
+def _library_log_level(args: argparse.Namespace) -> Iterator[None]:
+    """Prefect's and Dask's log level for ``--log-level``, ``--verbose`` (INFO) or ``--quiet`` (ERROR).
+
+    Set as ``PREFECT_LOGGING_LEVEL`` and ``DASK_LOGGING__DISTRIBUTED``, which Prefect and Dask read when
+    imported (after this) and :func:`flows.runtime.quiet_logs` and the workers follow; without one of
+    the options they stay as the user set them (default WARNING). Restored afterwards (a run in a test).
+    """
+    level = args.log_level or ("INFO" if args.verbose else "ERROR" if args.quiet else None)
+    names = ("PREFECT_LOGGING_LEVEL", "DASK_LOGGING__DISTRIBUTED")
+    saved = {name: os.environ.get(name) for name in names}
+    if level:
+        os.environ.update({"PREFECT_LOGGING_LEVEL": level, "DASK_LOGGING__DISTRIBUTED": level.lower()})
     try:
-        return _main(args)
-    except KeyboardInterrupt:
-        print(f"btf {args.command}: interrupted; run the same command again to resume", file=sys.stderr)
-        return 130
-    except Exception as exc:  # every error reaches the user as one message, never as a traceback
-        from flows.runtime import RuntimeUnavailable
-        if os.environ.get("BTF_DEBUG"):
-            raise
-        if isinstance(exc, RuntimeUnavailable):
-            message, code = str(exc), EXIT_RUNTIME
-        else:
-            message, code = _error_message(exc, args)
-        print(f"btf {args.command}: {message}", file=sys.stderr)
-        return code
+        yield
+    finally:
+        for name, value in saved.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
+
+
+def _label(args: argparse.Namespace) -> str:
+    """``btf ingest``, ``btf evaluate acquisition``: the command as its info lines name it."""
+    return " ".join(["btf", args.command] + ([args.what] if isinstance(getattr(args, "what", None), str) else []))
+
+
+def _starting_line(label: str, profile: Any) -> str:
+    """What a computing command starts once its inputs are checked: the Prefect API and the Dask cluster
+    of ``profile`` (a :class:`flows.runtime.Profile`)."""
+    url = os.environ.get("PREFECT_API_URL") or profile.prefect.get("api_url")
+    api = (f"connecting to the Prefect API at {url} and starting" if url
+           else "starting a local Prefect API (unless a `btf server` runs) and")
+    cluster = profile.cluster
+    workers, threads = cluster.get("n_workers", 2), cluster.get("threads_per_worker", 1)
+    size = (f"{workers} worker{'s' * (workers != 1)} x {threads} thread{'s' * (threads != 1)}"
+            + (", in this process" if cluster.get("processes") is False else ""))
+    return f"{label}: {api} a {cluster.get('kind', 'local')} Dask cluster ({size}; profile {profile.path}) ..."
 
 
 def _main(args: argparse.Namespace) -> int:
     command = COMMANDS[args.command]
+    info = command.on_cluster(args) and not args.quiet
+    if info:                           # within a second of the start, before anything slow is imported
+        say(f"{_label(args)}: checking the inputs ...")
     prepared = _preflight(args, command)
     if not command.on_cluster(args):
         return command.run(args)  # in this process: sample, plan, render, validate, export-exr, ...
 
     from flows.runtime import runtime
 
+    if info:
+        say(_starting_line(_label(args), prepared["profile"]))
     start = time.perf_counter()
-    with runtime(prepared["profile"]) as (_profile, _url, client):
+    with runtime(prepared["profile"]) as (profile, url, client):
+        if info:
+            dashboard = f", dashboard {client.dashboard_link}" if profile.cluster.get("dashboard") else ""
+            say(f"{_label(args)}: Prefect API {url} and Dask cluster {client.scheduler.address} ready after "
+                f"{time.perf_counter() - start:.1f} s{dashboard}")
         summary = command.flow(args, client.scheduler.address, prepared)
     print(json.dumps({**summary, "seconds": round(time.perf_counter() - start, 2)}, indent=2))
     return 0

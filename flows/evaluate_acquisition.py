@@ -23,11 +23,15 @@ def evaluate_stage(db: str, out: str, scheduler_address: str, config: Evaluation
                    progress: bool) -> dict[str, Any]:
     from distributed import Client
 
-    from flows.progress import progress_bars
-    from tasks.evaluate_acquisition import evaluate_acquisition
+    from flows.progress import progress_bars, say
+    from tasks.evaluate_acquisition import evaluate_acquisition, reuse_message
 
-    with progress_bars(progress) as bar, Client(scheduler_address, set_as_default=False) as client:
-        return evaluate_acquisition(db, out, client, config, progress=bar)
+    units = {"truth BTFs": "view", "bases": "material", "reconstruct": "material"}
+    with progress_bars(progress, units) as bar, Client(scheduler_address, set_as_default=False) as client:
+        summary = evaluate_acquisition(db, out, client, config, progress=bar)
+    if progress:
+        say(reuse_message(summary["reused"]))
+    return summary
 
 
 @task(name="acquisition-report", cache_policy=NO_CACHE)
@@ -45,6 +49,8 @@ def evaluate_acquisition_flow(db: str, out: str, scheduler_address: str,
 
     ``db`` holds (or receives) the truth BTF stores of ``config``; ``out``
     receives ``model.zarr``, ``report.json``, ``report.html`` and the figures.
+    A rerun on the same ``out`` reuses every finished result whose inputs did
+    not change and says so (one line, and the summary's ``"reused"``).
     Returns the summary written to ``report.json``.
     """
     Path(out).mkdir(parents=True, exist_ok=True)

@@ -50,7 +50,7 @@ def ingest_stage(capture: str, out: str, scheduler_address: str, overwrite: bool
     from flows.progress import progress_bar
     from tasks.ingest import ingest_capture
 
-    bar, update = progress_bar("ingest", progress)
+    bar, update = progress_bar("ingest", progress, unit="view")
     with bar, Client(scheduler_address, set_as_default=False) as client:
         return ingest_capture(capture, out, client, overwrite=overwrite, calibration=calibration, progress=update,
                               commit=False)
@@ -138,7 +138,7 @@ def ingest_database_stage(stores: list[str], out_dir: str, scheduler_address: st
     from tasks.stores import open_capture_store
 
     results = {}
-    bar, update = progress_bar("ingest", progress)
+    bar, update = progress_bar("ingest", progress, unit="view")
     with bar, Client(scheduler_address, set_as_default=False) as client:
         for store in stores:
             out = str(Path(out_dir) / Path(store).name)

@@ -21,7 +21,8 @@ def build_stage(db: str, out: str, scheduler_address: str, settings: ModelSettin
     from flows.progress import progress_bars
     from tasks.model import build_database
 
-    with progress_bars(progress) as bar, Client(scheduler_address, set_as_default=False) as client:
+    units = {"material bases": "material", "leave-one-out": "material"}
+    with progress_bars(progress, units) as bar, Client(scheduler_address, set_as_default=False) as client:
         return build_database(db, out, client, settings=settings, class_map=class_map, progress=bar)
 
 

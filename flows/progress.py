@@ -1,39 +1,119 @@
-"""Progress bars of the flows: the ``progress(done, total)`` callbacks a stage's tasks report to.
+"""What a run shows on stderr while it runs: progress of each stage, and the CLI's info lines.
 
-A stage hands the update function to :func:`tasks.compute.wait_all` (through its
-``tasks`` function), which calls it after each finished task; the bar is drawn on
-stderr, or not at all with ``btf --no-progress`` (docs/architecture.md, "Execution").
+A stage hands the update function of :func:`progress_bar` to
+:func:`tasks.compute.wait_all` (through its ``tasks`` function), which calls it
+after each finished task. One place decides how it is shown (:func:`on_terminal`):
+in a terminal, a tqdm bar; elsewhere (a Slurm job log, CI, ``nohup``), one
+timestamped line when the stage starts, about every 10 % of it and when it ends::
+
+    2026-12-03 09:12:04 ingest: 40/96 views (42 %), 12.3 s
+
+``btf --no-progress`` (or ``--quiet``) shows neither (docs/architecture.md, "Execution").
 """
 
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Callable, Iterator
-from typing import Any
+import sys
+import time
+from collections.abc import Callable, Iterator, Mapping
+from typing import TYPE_CHECKING, Any
 
-from tasks.compute import Progress
+if TYPE_CHECKING:                     # importing tasks loads zarr: the CLI's first line comes before that
+    from tasks.compute import Progress
+
+#: Outside a terminal a stage prints a line each time another 1/STEPS of its work is done (besides its
+#: first and last line, which say that it started and that it is done).
+STEPS = 10
+
+#: Plurals of the units that do not just take an "s".
+_PLURALS = {"basis": "bases"}
 
 
-def progress_bar(desc: str, enabled: bool) -> tuple[Any, Progress]:
-    """One progress bar and its ``update(done, total)``.
+def on_terminal() -> bool:
+    """Whether stderr is a terminal: bars there, timestamped lines elsewhere (the one place that decides)."""
+    try:
+        return sys.stderr.isatty()
+    except (AttributeError, ValueError):             # replaced or closed stderr
+        return False
+
+
+def say(message: str) -> None:
+    """Print one info line on stderr, timestamped outside a terminal (a job log says when it happened)."""
+    print(message if on_terminal() else f"{_timestamp()} {message}", file=sys.stderr, flush=True)
+
+
+def _timestamp() -> str:
+    return time.strftime("%Y-%m-%d %H:%M:%S")
+
+
+def _plural(unit: str, n: int) -> str:
+    return unit if n == 1 else _PLURALS.get(unit, unit + "s")
+
+
+class _Lines:
+    """A stage's progress as log lines: at the start, at every further tenth of the work, at the end.
+
+    A stage whose tasks report several runs in turn (one per store, each counting from 0) starts
+    counting the tenths again at each one.
+    """
+
+    def __init__(self, desc: str, unit: str):
+        self.desc, self.unit = desc, unit
+        self.start = time.perf_counter()
+        self.done, self.total, self.step = 0, 0, 0
+        say(f"{desc}: started")
+
+    def _line(self, suffix: str = "") -> None:
+        share = f" ({100 * self.done // self.total} %)" if self.total else ""
+        say(f"{self.desc}: {self.done}/{self.total} {_plural(self.unit, self.total)}{share}, "
+            f"{time.perf_counter() - self.start:.1f} s{suffix}")
+
+    def update(self, done: int, total: int) -> None:
+        if done < self.done or total != self.total:  # the next run of this stage
+            self.step = 0
+        self.done, self.total = done, total
+        step = STEPS * done // total if total else 0
+        if self.step < step < STEPS:
+            self._line()
+        self.step = max(self.step, step)
+
+    def close(self) -> None:
+        self._line(", done")
+
+    def __enter__(self) -> _Lines:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def progress_bar(desc: str, enabled: bool, unit: str = "task") -> tuple[Any, Progress]:
+    """The progress display of one stage and its ``update(done, total)``.
 
     Parameters
     ----------
     desc : str
-        Label of the bar (e.g. ``"ingest"``).
+        Name of the stage (e.g. ``"ingest"``).
     enabled : bool
-        False hides the bar (``--no-progress``); the update function still works.
+        False shows nothing (``--no-progress``, ``--quiet``); the update function still works.
+    unit : str
+        What the stage's tasks count, singular (``"view"``, ``"material"``, ``"band"``, ``"basis"``).
 
     Returns
     -------
-    bar : tqdm.tqdm
-        The bar; close it (or use it as a context manager) when the stage ends.
+    bar : tqdm.tqdm or log lines
+        Close it (or use it as a context manager) when the stage ends: outside a terminal that
+        prints the last line.
     update : callable
-        ``update(done, total)`` sets the bar to ``done`` of ``total`` tasks.
+        ``update(done, total)``: ``done`` of ``total`` units finished.
     """
+    if enabled and not on_terminal():
+        lines = _Lines(desc, unit)
+        return lines, lines.update
     from tqdm.auto import tqdm
 
-    bar = tqdm(total=0, desc=desc, unit="view", disable=None if enabled else True, leave=True)
+    bar = tqdm(total=0, desc=desc, unit=unit, disable=not enabled, leave=True)
 
     def update(done: int, total: int) -> None:
         bar.total = total
@@ -44,13 +124,19 @@ def progress_bar(desc: str, enabled: bool) -> tuple[Any, Progress]:
 
 
 @contextlib.contextmanager
-def progress_bars(enabled: bool) -> Iterator[Callable[[str], Progress]]:
-    """``bar(desc)`` opens one more progress bar and returns its ``(done, total)`` update; all close on exit
-    (stages whose tasks report several phases: bases, evaluation, ...)."""
+def progress_bars(enabled: bool, units: Mapping[str, str] | None = None) -> Iterator[Callable[[str], Progress]]:
+    """``bar(desc)`` opens the display of the next phase of a stage and returns its ``(done, total)``
+    update (stages whose tasks report several phases in turn: bases, evaluation, ...). Opening a phase
+    closes the one before (it has finished: its last line says how long it took); the last closes on exit.
+
+    ``units`` names what each phase counts (``{"material bases": "material"}``; default ``"task"``).
+    """
     bars = []
 
     def bar(desc: str) -> Progress:
-        b, update = progress_bar(desc, enabled)
+        if bars:
+            bars.pop().close()
+        b, update = progress_bar(desc, enabled, unit=(units or {}).get(desc, "task"))
         bars.append(b)
         return update
 

@@ -22,7 +22,7 @@ def resample_stage(btf: str, out: str, sampling: str, scheduler_address: str, ov
     from flows.progress import progress_bar
     from tasks.resample import resample_store
 
-    bar, update = progress_bar("resample", progress)
+    bar, update = progress_bar("resample", progress, unit="view")
     with bar, Client(scheduler_address, set_as_default=False) as client:
         return resample_store(btf, out, client, sampling=sampling, overwrite=overwrite, progress=update)
 

@@ -1,10 +1,11 @@
 """Execution environment of a ``btf`` run: one Prefect API and one Dask cluster.
 
 The cluster and the Prefect API are chosen by a profile file (``infra/local.yaml``
-by default), never by code edits. With no Prefect server configured, one
-temporary server is started for the run and its URL is handed to the Dask
-workers, so that no worker starts a server of its own (docs/architecture.md,
-"Execution").
+by default), never by code edits. With no Prefect server configured, a running
+``btf server`` (:mod:`flows.server`) is used, else one temporary server is
+started for the run, at the same time as the cluster, and its URL is handed to
+the Dask workers, so that no worker starts a server of its own
+(docs/architecture.md, "Execution").
 """
 
 from __future__ import annotations
@@ -15,12 +16,16 @@ import logging
 import os
 import sys
 import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator
 
 import yaml
 from distributed import WorkerPlugin
+
+from flows.server import LOOPBACK, RuntimeUnavailable, running_server  # noqa: F401  (RuntimeUnavailable: re-exported)
 
 DEFAULT_PROFILE = Path(__file__).resolve().parents[1] / "infra" / "local.yaml"
 
@@ -44,10 +49,6 @@ WORKER_ENVIRON = {
     "MALLOC_MMAP_THRESHOLD_": "4194304",
     "MALLOC_TRIM_THRESHOLD_": str(8 << 20),
 }
-
-
-class RuntimeUnavailable(RuntimeError):
-    """Prefect or the Dask cluster could not be started; the message says why."""
 
 
 class ProfileError(ValueError):
@@ -94,9 +95,9 @@ PREFECT_KEYS: dict[str, tuple[type, ...]] = {
     "startup_timeout_s": _NUMBER,
 }
 
-#: Where a default run listens: every socket (scheduler, its HTTP server, nannies, workers, dashboard;
-#: the temporary Prefect server binds 127.0.0.1 by itself) stays on this machine (docs/decisions.md).
-LOOPBACK = "127.0.0.1"
+#: ``LOOPBACK`` (from :mod:`flows.server`): where a default run listens: every socket (scheduler, its HTTP
+#: server, nannies, workers, dashboard; the temporary Prefect server and the ``btf server`` bind 127.0.0.1
+#: by themselves) stays on this machine (docs/decisions.md).
 
 
 #: Errors that mean bad input or a refused output (the message says what to fix): running the stage
@@ -333,23 +334,37 @@ def quiet_logs() -> None:
     the caller, and ``btf`` names it in one line. ``PREFECT_LOGGING_LEVEL=INFO`` (or ``DEBUG``) shows
     them, as ``DASK_LOGGING__DISTRIBUTED=info`` shows Dask's.
     """
+    _quiet_before_prefect()
+    import prefect  # noqa: F401  (prefect configures logging on import; override after it)
+
+    _quiet_log_levels()
+
+
+def _quiet_before_prefect() -> None:
+    """What :func:`quiet_logs` sets before Prefect is imported: the environment (which the Dask workers
+    and a temporary server inherit) and Dask's log level (which a starting cluster reads)."""
     if "PREFECT_LOGGING_LEVEL" not in os.environ:
         os.environ["PREFECT_LOGGING_LEVEL"] = "WARNING"
         _QUIET["prefect"] = True
     os.environ.setdefault("PREFECT_LOGGING_TO_API_ENABLED", "false")
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+    # the client's first-run telemetry notice: printed by `import prefect` in a terminal (this process or
+    # a temporary server's, which inherits the terminal) unless DO_NOT_TRACK is set
+    os.environ.setdefault("DO_NOT_TRACK", "1")
     os.environ.setdefault("PREFECT_UI_ENABLED", "false")
     # distributed sets its logger levels from dask config when first imported
     dask_level = os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "warning")
     os.environ.setdefault("DASK_DISTRIBUTED__WORKER__DAEMON", "False")
-    import prefect  # noqa: F401  (prefect configures logging on import; override after it)
+    if dask_level.lower() == "warning":
+        logging.getLogger("distributed").setLevel(logging.WARNING)
 
+
+def _quiet_log_levels() -> None:
+    """The logger levels and filters of :func:`quiet_logs` (after Prefect is imported)."""
     for name in ("httpx", "uvicorn", "asyncio"):
         logging.getLogger(name).setLevel(logging.WARNING)
     if _QUIET["prefect"] and os.environ["PREFECT_LOGGING_LEVEL"] == "WARNING":
         logging.getLogger("prefect").setLevel(logging.WARNING)
-    if dask_level.lower() == "warning":
-        logging.getLogger("distributed").setLevel(logging.WARNING)
     for name in RUN_LOGGERS:
         if _RUN_FAILURE_FILTER not in logging.getLogger(name).filters:
             logging.getLogger(name).addFilter(_RUN_FAILURE_FILTER)
@@ -377,8 +392,66 @@ def _check_health(api_url: str, timeout: float) -> None:
 
 
 @contextlib.contextmanager
+def _starting_prefect_api(profile: Profile) -> Iterator[tuple[str, Callable[[], str]]]:
+    """``(url, ready)`` of the run's Prefect API, its URL known before it answers.
+
+    The API is, in this order: ``PREFECT_API_URL`` or the profile's ``prefect.api_url``; else a
+    running ``btf server`` (:func:`flows.server.running_server`; a stale state file is ignored with
+    one line); else a temporary server started here, in a thread, so that the caller can start the
+    Dask cluster meanwhile (docs/architecture.md, "Execution"). ``ready()`` waits until the API
+    answers and returns its URL, or raises :class:`RuntimeUnavailable`; the temporary server is
+    stopped on exit.
+    """
+    timeout = float(profile.prefect.get("startup_timeout_s", 90))
+    url = os.environ.get("PREFECT_API_URL") or profile.prefect.get("api_url")
+    if url:
+        def configured() -> str:
+            _check_health(url, timeout)
+            return url
+
+        yield url, configured
+        return
+    url = running_server()
+    if url:
+        yield url, lambda: url
+        return
+
+    from flows.server import free_port
+
+    port = free_port()
+    servers: list[Any] = []
+
+    def start() -> str:
+        # the server's environment is this process' at the moment it spawns: possibly with the
+        # workers' WORKER_ENVIRON and its own URL as PREFECT_API_URL (dask_client), both harmless to it
+        from prefect.server.api.server import SubprocessASGIServer
+
+        servers.append(SubprocessASGIServer(port=port))
+        try:
+            servers[0].start(timeout=max(1, int(timeout)))
+        except Exception as exc:  # prefect raises RuntimeError/httpx errors of several kinds
+            raise RuntimeUnavailable(
+                f"could not start a temporary Prefect server within {timeout:.0f} s: {exc}. "
+                "Raise prefect.startup_timeout_s in the profile or set PREFECT_API_URL to a running server."
+            ) from None
+        return servers[0].api_url
+
+    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="btf-prefect-server")
+    started = pool.submit(start)
+    try:
+        yield f"http://{LOOPBACK}:{port}/api", started.result
+    finally:
+        with contextlib.suppress(Exception):  # its error, if any, was raised by ready() already
+            started.result()
+        pool.shutdown()
+        for server in servers:
+            server.stop()
+
+
+@contextlib.contextmanager
 def prefect_api(profile: Profile) -> Iterator[str]:
-    """Yield the URL of a Prefect API that answers, starting a temporary one if needed.
+    """Yield the URL of a Prefect API that answers, starting a temporary one if needed (see
+    :func:`_starting_prefect_api` for which API is chosen).
 
     Raises
     ------
@@ -388,30 +461,10 @@ def prefect_api(profile: Profile) -> Iterator[str]:
     """
     from prefect.settings import PREFECT_API_URL, temporary_settings
 
-    timeout = float(profile.prefect.get("startup_timeout_s", 90))
-    url = os.environ.get("PREFECT_API_URL") or profile.prefect.get("api_url")
-    if url:
-        _check_health(url, timeout)
+    with _starting_prefect_api(profile) as (_url, ready):
+        url = ready()
         with temporary_settings({PREFECT_API_URL: url}):
             yield url
-        return
-
-    from prefect.server.api.server import SubprocessASGIServer
-
-    server = SubprocessASGIServer()
-    try:
-        server.start(timeout=max(1, int(timeout)))
-    except Exception as exc:  # prefect raises RuntimeError/httpx errors of several kinds
-        server.stop()
-        raise RuntimeUnavailable(
-            f"could not start a temporary Prefect server within {timeout:.0f} s: {exc}. "
-            "Raise prefect.startup_timeout_s in the profile or set PREFECT_API_URL to a running server."
-        ) from None
-    try:
-        with temporary_settings({PREFECT_API_URL: server.api_url}):
-            yield server.api_url
-    finally:
-        server.stop()
 
 
 @contextlib.contextmanager
@@ -477,7 +530,7 @@ def _local_cluster(spec: dict[str, Any]) -> Any:
         # 8787 with the dashboard, else on a random port
         dashboard_address=_dashboard_address(spec),
         scheduler_kwargs={"dashboard": dashboard},
-        silence_logs=logging.WARNING,
+        silence_logs=logging.getLogger("distributed").getEffectiveLevel(),   # WARNING; INFO with btf --verbose
     )
 
 
@@ -497,19 +550,37 @@ def _raise_log_level(names: tuple[str, ...] = _CLOSE_LOGGERS) -> None:
             logger.setLevel(logging.ERROR)
 
 
-def _close_quietly(client: Any, cluster: Any) -> None:
-    """Close ``client``, then ``cluster``, without the warnings Dask prints on the way.
+#: Seconds an idle worker process gets to exit at the end of a run before its nanny kills it.
+#: distributed's own grace is 4 s, which a loaded machine exceeds after a successful run
+#: ("distributed.nanny - WARNING - Worker process still alive after 4.0 seconds, killing").
+IDLE_WORKER_CLOSE_S = 30.0
 
-    The run is over (finished or failed) when this runs: a worker still busy with a task of a failed
-    run gets distributed's grace (4 s) to finish it and is then killed, as before, but the nanny's
-    "still alive ... killing" and the workers' "task cancelled" warnings describe that expected end,
-    not a problem, so they are not printed. Closing the client first lets the scheduler release its
-    tasks before the workers are asked to stop.
+
+async def _close_workers(cluster: Any, timeout: float) -> None:
+    """Close every worker (its nanny and process) of ``cluster``, each given ``timeout`` seconds to exit."""
+    import asyncio
+
+    await asyncio.gather(*(worker.close(timeout=timeout, reason="btf-run-finished")
+                           for worker in list(cluster.workers.values())), return_exceptions=True)
+
+
+def _close_quietly(client: Any, cluster: Any) -> None:
+    """Close ``client``, then the workers, then ``cluster``, without the warnings Dask prints on the way.
+
+    After a run that finished, no task runs: each worker is asked to close and given
+    ``IDLE_WORKER_CLOSE_S`` to exit, so that none is killed however loaded the machine is. After a
+    failed run a worker may still be busy with a task of it: that one gets distributed's grace (4 s)
+    to finish and is then killed, as before, and the nanny's "still alive ... killing" and the
+    workers' "task cancelled" warnings, which describe that expected end, are not printed. Closing
+    the client first lets the scheduler release its tasks before the workers are asked to stop.
     """
     distributed_logger = logging.getLogger("distributed")
     level = distributed_logger.level
     try:
+        idle = False
         if client is not None:
+            with contextlib.suppress(Exception):
+                idle = not any(client.processing().values())
             if getattr(cluster, "processes", False):  # in-process workers share this process's loggers
                 with contextlib.suppress(Exception):  # a wedged worker must not hold up the close
                     client.sync(client._run, _raise_log_level, on_error="ignore", callback_timeout=5)
@@ -517,6 +588,10 @@ def _close_quietly(client: Any, cluster: Any) -> None:
                 client.close(timeout=10)
         if distributed_logger.getEffectiveLevel() == logging.WARNING:
             distributed_logger.setLevel(logging.ERROR)
+        if idle:
+            with contextlib.suppress(Exception):
+                cluster.sync(_close_workers, cluster, IDLE_WORKER_CLOSE_S,
+                             callback_timeout=IDLE_WORKER_CLOSE_S + 10)
         cluster.close(timeout=30)
     finally:
         distributed_logger.setLevel(level)
@@ -548,8 +623,18 @@ def runtime(profile: Profile | str | os.PathLike | None = None) -> Iterator[tupl
     starts, so that a bad profile is bad input), or a path to load, or ``None`` for
     ``$BTF_CLUSTER_CONFIG`` or ``infra/local.yaml``.
     """
-    quiet_logs()
     if not isinstance(profile, Profile):
         profile = load_profile(profile)
-    with prefect_api(profile) as url, dask_client(profile, url) as client:
-        yield profile, url, client
+    _quiet_before_prefect()
+    # Prefect is imported (quiet_logs, seconds), a temporary Prefect server started (its own thread)
+    # and the Dask cluster started at the same time; each failure is raised with its own message, and
+    # what did start is stopped
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="btf-import-prefect") as pool:
+        quieted = pool.submit(quiet_logs)
+        with _starting_prefect_api(profile) as (url, ready), dask_client(profile, url) as client:
+            quieted.result()
+            url = ready()
+            from prefect.settings import PREFECT_API_URL, temporary_settings
+
+            with temporary_settings({PREFECT_API_URL: url}):
+                yield profile, url, client

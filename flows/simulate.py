@@ -15,8 +15,8 @@ from typing import Any
 from prefect import flow, task
 from prefect.cache_policies import NO_CACHE
 
-from flows.progress import progress_bar
-from tasks.report import simulation_report, write_json
+from flows.progress import progress_bar, say
+from tasks.report import reused_text, simulation_report, write_json
 from tasks.simulate import SimulationConfig, simulate_database
 
 
@@ -26,7 +26,7 @@ def simulate_stage(config: SimulationConfig, out_dir: str, scheduler_address: st
                    progress: bool) -> dict[str, Any]:
     from distributed import Client
 
-    bar, update = progress_bar(f"simulate {config.device}", progress)
+    bar, update = progress_bar(f"simulate {config.device}", progress, unit="view")
     with bar, Client(scheduler_address, set_as_default=False) as client:
         result = simulate_database(config, out_dir, client, overwrite=overwrite, progress=update)
     return {"stores": result.stores, "views_rendered": result.views_done,
@@ -60,6 +60,29 @@ def simulate_flow(config: SimulationConfig, out_dir: str, scheduler_address: str
     return report
 
 
+@task(name="demo-model-database", cache_policy=NO_CACHE)
+def model_database_stage(btf_dir: str, model_dir: str, scheduler_address: str, progress: bool
+                         ) -> tuple[dict[str, Any], dict[str, list[int]]]:
+    """The demo's model database (``btf build-db`` and its report) unless a finished one of the same key
+    is there (:func:`tasks.evaluate_acquisition.reuse.model_database_key`): what the demo's report shows of
+    it, and what was reused."""
+    from flows.model import build_stage, model_report_stage
+    from tasks.evaluate_acquisition.reuse import model_database_key, read_record, write_record
+    from tasks.model import ModelSettings
+
+    settings, record_path = ModelSettings(), Path(model_dir) / "demo.json"
+    key = model_database_key(btf_dir, model_dir, settings)
+    record = read_record(record_path, key) if key else None
+    if record is not None:
+        return record["model"], {"bases": [record["bases"]] * 2, "leave_one_out_table": [1, 1]}
+    build = build_stage.fn(btf_dir, model_dir, scheduler_address, settings, None, progress)
+    model = model_report_stage.fn(model_dir, build, settings)
+    fitted = [how for fit in build["fits"] for how in fit["bases"].values()]
+    record = write_record(record_path, model_database_key(btf_dir, model_dir, settings), {
+        "model": {k: model[k] for k in ("ks", "table_1", "trends", "k")}, "bases": len(fitted)})
+    return record["model"], {"bases": [fitted.count("reused"), len(fitted)], "leave_one_out_table": [0, 1]}
+
+
 @flow(name="btf-demo", log_prints=False)
 def demo_flow(out_dir: str, scheduler_address: str, seed: int = 0, n_materials: int = 12,
               progress: bool = True, evaluate_acquisition: bool = True) -> dict[str, Any]:
@@ -76,38 +99,35 @@ def demo_flow(out_dir: str, scheduler_address: str, seed: int = 0, n_materials: 
     model database and the evaluation are skipped.
     """
     from flows.ingest import calibration_stage, ingest_database_stage
-    from flows.model import build_stage, model_report_stage
-    from tasks.model import ModelSettings
 
     start = time.perf_counter()
     out = Path(out_dir)
     config = SimulationConfig(device="tiny", n_materials=n_materials, seed=seed)
     stage = simulate_stage(config, str(out / "database"), scheduler_address, False, progress)
+    stages = {"simulate": _said("simulate", _simulated(stage), progress)}
     white_config = SimulationConfig(device="tiny", n_materials=1, seed=seed, classes=("white-standard",))
     white = simulate_stage(white_config, str(out / "white-standard"), scheduler_address, False, progress)
     ingest_database_stage(white["stores"], str(out / "btf-white"), scheduler_address, progress)
     calibration = calibration_stage(str(out / "btf-white" / Path(white["stores"][0]).name), 0.99, None)
     ingest = ingest_database_stage(stage["stores"], str(out / "btf"), scheduler_address, progress, calibration)
+    stages["ingest"] = _said("ingest", _ingested(ingest), progress)
     n_classes = len(config.classes)
     mux_config = SimulationConfig(device="tiny", n_materials=min(n_materials, n_classes), seed=seed,
                                   illumination="multiplexed")
     mux = simulate_stage(mux_config, str(out / "database-multiplexed"), scheduler_address, False, progress)
+    stages["simulate multiplexed"] = _said("simulate multiplexed", _simulated(mux), progress)
     ingest_mux = ingest_database_stage(mux["stores"], str(out / "btf-multiplexed"), scheduler_address, progress,
                                        calibration)
-    run = {"command": "demo", "config": config.to_json(), "out_dir": str(out.resolve()),
-           "stages": {"simulate": {k: v for k, v in stage.items() if k != "stores"},
-                      "ingest": {"seconds": round(sum(r["seconds"] for r in ingest.values()), 3)},
-                      "simulate multiplexed": {k: v for k, v in mux.items() if k != "stores"},
-                      "ingest multiplexed": {"seconds": round(sum(r["seconds"] for r in ingest_mux.values()), 3)}},
+    stages["ingest multiplexed"] = _said("ingest multiplexed", _ingested(ingest_mux), progress)
+    run = {"command": "demo", "config": config.to_json(), "out_dir": str(out.resolve()), "stages": stages,
            "radiometric": calibration.info, "ingest": ingest, "ingest_multiplexed": ingest_mux,
            "ingest_btf": {Path(store).stem: str(out / "btf" / Path(store).name) for store in stage["stores"]}}
     if n_materials >= 2 * n_classes:         # leave-one-out needs two materials per class
         start_model = time.perf_counter()
-        model = model_report_stage(str(out / "model"), build_stage(str(out / "btf"), str(out / "model"),
-                                   scheduler_address, ModelSettings(), None, progress), ModelSettings())
-        run["stages"]["build-db"] = {"seconds": round(time.perf_counter() - start_model, 3)}
-        run["model"] = {"report_html": str(out / "model" / "report.html"), "ks": model["ks"],
-                        "table_1": model["table_1"], "trends": model["trends"], "k": model["k"]}
+        model, reused = model_database_stage(str(out / "btf"), str(out / "model"), scheduler_address, progress)
+        stages["build-db"] = _said("build-db", {"seconds": round(time.perf_counter() - start_model, 3),
+                                                "reused": reused}, progress)
+        run["model"] = {"report_html": str(out / "model" / "report.html"), **model}
     if evaluate_acquisition and n_materials >= 2 * n_classes:    # the demo's full run; --materials 2 skips it
         from flows.evaluate_acquisition import evaluate_acquisition_flow
         from tasks.evaluate_acquisition import EvaluationConfig
@@ -116,10 +136,31 @@ def demo_flow(out_dir: str, scheduler_address: str, seed: int = 0, n_materials: 
         acquisition = evaluate_acquisition_flow(str(out / "acquisition-database"), str(out / "acquisition"),
                                                 scheduler_address, EvaluationConfig(seed=seed, n_turntable=1),
                                                 progress)
-        run["stages"]["evaluate acquisition"] = {"seconds": round(time.perf_counter() - start_eval, 3)}
+        run["stages"]["evaluate acquisition"] = {"seconds": round(time.perf_counter() - start_eval, 3),
+                                                 "reused": acquisition["reused"]}
         run["acquisition"] = {"report_html": str(out / "acquisition" / "report.html"),
                               "scale": acquisition["scale"], "claims": acquisition["claims"]}
     report = report_stage(config, out_dir, stage["stores"], run)
     report["seconds"] = round(time.perf_counter() - start, 3)
     write_json(Path(out_dir) / "report.json", report)
     return report
+
+
+def _said(name: str, figures: dict[str, Any], progress: bool) -> dict[str, Any]:
+    """A stage's figures for the demo's report, after one line saying what it reused (with ``progress``)."""
+    if progress:
+        say(f"{name}: reused {reused_text(figures['reused'])}")
+    return figures
+
+
+def _simulated(stage: dict[str, Any]) -> dict[str, Any]:
+    """A simulate stage's figures for the demo's report, with the views it reused from an earlier run."""
+    done = stage["views_rendered"] + stage["views_skipped"]
+    return {**{k: v for k, v in stage.items() if k != "stores"}, "reused": {"views": [stage["views_skipped"], done]}}
+
+
+def _ingested(results: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """An ingest stage's figures (over all its stores) for the demo's report, with the views it reused."""
+    skipped = sum(r.get("views_skipped", 0) for r in results.values())
+    total = skipped + sum(r.get("views_processed", 0) for r in results.values())
+    return {"seconds": round(sum(r["seconds"] for r in results.values()), 3), "reused": {"views": [skipped, total]}}

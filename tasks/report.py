@@ -37,6 +37,14 @@ def _json_default(value: Any) -> Any:
     raise TypeError(f"not JSON serialisable: {type(value).__name__}")
 
 
+def reused_text(reused: dict[str, Sequence[int]]) -> str:
+    """What a stage reused from an earlier run, for a log line or a report: ``"96 of 96 views, 12 of 12 bases"``.
+
+    ``reused`` is a stage's ``"reused"``: ``{what: [reused, total]}`` (``_`` in ``what`` read as a space).
+    """
+    return ", ".join(f"{n} of {total} {what.replace('_', ' ')}" for what, (n, total) in reused.items())
+
+
 def write_json(path: str | Path, data: dict[str, Any]) -> Path:
     """Write plain JSON (numpy values converted, NaN/Inf refused) atomically."""
     path = Path(path)
@@ -444,7 +452,8 @@ def simulation_report(out_dir: str | Path, device: Device, store_paths: Sequence
         **{k: v for k, v in run.items() if not isinstance(v, (dict, list))},
         "device": f"{device.name}: {device.n_lv} light/view pairs, texture {device.texture_shape[0]}x{device.texture_shape[1]}",
         "materials": ", ".join(m["material_id"] for m in materials),
-        **{f"{name} stage": ", ".join(f"{k} {v}" for k, v in figures.items()) for name, figures in stages.items()},
+        **{f"{name} stage": ", ".join(f"reused {reused_text(v)}" if k == "reused" else f"{k} {v}"
+                                      for k, v in figures.items()) for name, figures in stages.items()},
     }
     write_html(out / "report.html", f"btf-pipeline report: {run.get('command', 'simulate')}", summary, sections)
     return report

@@ -3,10 +3,15 @@
 from __future__ import annotations
 
 import os
+import tempfile
 
 import pytest
 
 from tasks.shared_data import shared_data_dir
+
+# A developer's running `btf server` (its state file under $XDG_STATE_HOME) must not serve the
+# tests' runs: every test and every `btf` subprocess sees a private, empty state folder.
+os.environ["XDG_STATE_HOME"] = tempfile.mkdtemp(prefix="btf-test-state-")
 
 
 def pytest_collection_modifyitems(config, items):

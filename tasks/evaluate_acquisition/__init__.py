@@ -18,6 +18,10 @@ strategies, claims):
 4. **Claims and tables** (:mod:`.claims`), **renderings and report**
    (:mod:`.report`); :mod:`.run` runs the whole evaluation
    (:func:`evaluate_acquisition`).
+5. **Reuse** (:mod:`.reuse`): every finished result (a material's scores, the
+   rendered materials' reconstruction stores and figures) is stored with the
+   content key of its inputs; a rerun reuses it while the key is unchanged and
+   says how much it reused (the summary's ``"reused"``).
 
 :mod:`.config` holds :class:`EvaluationConfig`. Every public name of the
 package's modules used by the flows and tests is importable from here.
@@ -74,21 +78,25 @@ from tasks.evaluate_acquisition.report import (
     scale_of,
     write_acquisition_report,
 )
+from tasks.evaluate_acquisition.reuse import RESULTS_VERSION, figures_key, reuse_message, scores_key
 from tasks.evaluate_acquisition.run import evaluate_acquisition
 from tasks.evaluate_acquisition.truth import (
     create_truth_store,
     ensure_truth_database,
+    pending_truth_specs,
     prepare_truth_material,
     render_truth_view,
 )
 
 __all__ = [
-    "CHROMA_MAX", "EVAL_BASES", "LOG_Y_MAX", "REGISTRY", "STRUCTURED_CLASSES", "THESIS_N_S", "THESIS_PAIRS",
-    "TRUTH_KIND", "BandScores", "BandTruth", "EvaluationConfig", "Geometry", "Strategy", "StrategyBases",
-    "TruthSpec", "abrdf_images", "band_maxima", "band_variance", "bands", "build_strategies", "claims",
-    "class_means", "create_reconstruction_store", "create_truth_store", "demultiplex_views", "ensure_truth_database",
-    "env_map_path", "evaluate_acquisition", "evaluate_band", "evaluate_materials", "finish_scores", "fit_bases",
-    "leave_one_out_bases", "noisy_multiplexed", "noisy_rows", "noisy_single", "overall_means", "predicted_times",
-    "prepare_truth_material", "reconstruct_band", "render_one", "render_truth_view", "renderings", "scale_of",
-    "scaled_pairs", "score_band", "strategy_names", "thesis_tables", "truth_specs", "write_acquisition_report",
+    "CHROMA_MAX", "EVAL_BASES", "LOG_Y_MAX", "REGISTRY", "RESULTS_VERSION", "STRUCTURED_CLASSES", "THESIS_N_S",
+    "THESIS_PAIRS", "TRUTH_KIND", "BandScores", "BandTruth", "EvaluationConfig", "Geometry", "Strategy",
+    "StrategyBases", "TruthSpec", "abrdf_images", "band_maxima", "band_variance", "bands", "build_strategies",
+    "claims", "class_means", "create_reconstruction_store", "create_truth_store", "demultiplex_views",
+    "ensure_truth_database", "env_map_path", "evaluate_acquisition", "evaluate_band", "evaluate_materials",
+    "figures_key", "finish_scores", "fit_bases", "leave_one_out_bases", "noisy_multiplexed", "noisy_rows",
+    "noisy_single", "overall_means", "pending_truth_specs", "predicted_times", "prepare_truth_material",
+    "reconstruct_band", "render_one", "render_truth_view", "renderings", "reuse_message", "scale_of",
+    "scaled_pairs", "score_band", "scores_key", "strategy_names", "thesis_tables", "truth_specs",
+    "write_acquisition_report",
 ]

@@ -39,6 +39,7 @@ from btfcore.acquisition.reconstruct import abtf_halo
 from btfcore.acquisition.strategies import Geometry, Strategy, StrategyBases, build_strategies, strategy_names
 from tasks.compute import Progress, run_all, wait_all
 from tasks.evaluate_acquisition.config import EvaluationConfig
+from tasks.evaluate_acquisition.reuse import finished_store, read_record, write_record
 from tasks.model import CHANNELS, LINEAR_SVD, Material, ModelSettings, fit_material, merge_bases, open_model_store
 from tasks.stores.btf import create_btf_store, open_btf_store
 
@@ -197,13 +198,17 @@ def _geometry(material: Material) -> Geometry:
 # --------------------------------------------------------------------------- reconstruction stores
 
 
-def create_reconstruction_store(path: Path, truth_path: str, band_rows: int, strategy: str) -> str:
-    """An empty ``btf-texture`` store for one strategy's reconstruction (chunks = bands), rows as the truth's."""
+def create_reconstruction_store(path: Path, truth_path: str, band_rows: int, strategy: str, key: str = "") -> str:
+    """An empty ``btf-texture`` store for one strategy's reconstruction (chunks = bands), rows as the truth's.
+
+    ``key`` is the content key of the evaluation that writes it (:func:`.reuse.scores_key`): a rerun
+    reuses the store when it is complete under the same key.
+    """
     truth = open_btf_store(truth_path, require_complete=False)
     n_lv, h, w, _ = truth.btf.shape
     create_btf_store(path, {"units": truth.attrs["units"], "lv_order": truth.attrs["lv_order"],
                             "reconstruction_of": truth_path, "strategy": strategy,
-                            "ingest_hash": f"reconstruction-{strategy}"},
+                            "ingest_hash": f"reconstruction-{strategy}", "key": key},
                      light_dir=truth.light_dir, view_dir=truth.view_dir, lv_index=truth.group["lv_index"][...],
                      texture_shape=(h, w), rows_per_chunk=n_lv, band=band_rows,
                      written_shape=(len(bands(h, band_rows)),))
@@ -236,47 +241,66 @@ def _submit_material(client: Any, model_path: str, materials: list[Material], m:
     return scores, info, maxima
 
 
+def _finish_material(record_path: str, key: str, cls: str, scores: dict[str, BandScores],
+                     info: tuple[dict[str, Any], dict[str, Any]], maxima: tuple[np.ndarray, np.ndarray],
+                     stores: dict[str, str] | None) -> dict[str, Any]:
+    """One held-out material's record (scores, strategies, sampling), stored under ``key`` (a task).
+
+    Marks its reconstruction stores complete, then writes the record atomically: a killed run
+    leaves the material either finished or to be redone.
+    """
+    record = {"class": cls, "scores": {name: finish_scores(scores[name], maxima[0]) for name in strategy_names()},
+              "strategies": info[0], "sampling": info[1]}
+    for path in (stores or {}).values():
+        zarr.open_group(path, mode="r+", zarr_format=3).attrs.update({"complete": True})
+    return write_record(record_path, key, record)
+
+
 def evaluate_materials(model_path: str, materials: list[Material], config: EvaluationConfig, client: Any,
-                       out_dir: str | os.PathLike, *, render_ids: Sequence[str] = (),
+                       out_dir: str | os.PathLike, *, key: str, render_ids: Sequence[str] = (),
                        progress: Progress | None = None) -> dict[str, Any]:
     """Every strategy on every held-out material: one Dask graph of (material, band) tasks.
 
     Per material: band maxima -> exposure gains -> band variances of the
     demultiplexed measurement -> operators (leave-one-out bases, samplings) ->
-    band reconstructions and error sums -> scores. Materials in
-    ``render_ids`` also get their reconstructions written to
-    ``out_dir/reconstructions/<material>/<strategy>.zarr``.
+    band reconstructions and error sums -> scores, stored in
+    ``out_dir/scores/<material>.json`` under ``key`` (:func:`.reuse.scores_key`).
+    Materials in ``render_ids`` also get their reconstructions written to
+    ``out_dir/reconstructions/<material>/<strategy>.zarr``. A material whose
+    record is stored under ``key`` (and, in ``render_ids``, whose
+    reconstruction stores are complete under ``key``) is reused, not recomputed.
 
     Returns
     -------
     result : dict
         ``{"materials": {id: {"class", "scores": {strategy: metrics}, "strategies": {strategy: info},
-        "sampling": ...}}, "reconstructions": {id: {strategy: path}}}``.
+        "sampling": ...}}, "reconstructions": {id: {strategy: path}}, "reused": {id: bool},
+        "written": [ids whose reconstructions were written]}``.
     """
     device_noise = config.build_device().sensor
     noise = SensorNoise(float(device_noise.full_well_e), float(device_noise.read_noise_e), config.fill)
     out_dir = Path(out_dir)
-    finals, stores = {}, {}
+    records, finals, stores = {}, {}, {}
     for m in materials:
-        geometry = _geometry(m)
+        record_path = out_dir / "scores" / f"{m.material_id}.json"
+        record = read_record(record_path, key)
         write = None
         if m.material_id in render_ids:
             folder = out_dir / "reconstructions" / m.material_id
-            folder.mkdir(parents=True, exist_ok=True)
-            write = {name: create_reconstruction_store(folder / f"{name}.zarr", m.path, config.band_rows, name)
-                     for name in strategy_names()}
-            stores[m.material_id] = write
-        finals[m.material_id] = _submit_material(client, model_path, materials, m, geometry, config, noise, write)
-    wait_all([f for trio in finals.values() for f in trio], progress)
-    result: dict[str, Any] = {"materials": {}, "reconstructions": stores}
-    for m in materials:
-        scores_f, ops_f, maxima_f = finals[m.material_id]
-        scores, (info, sampling), maxima = scores_f.result(), ops_f.result(), maxima_f.result()
-        result["materials"][m.material_id] = {
-            "class": m.cls,
-            "scores": {name: finish_scores(scores[name], maxima[0]) for name in strategy_names()},
-            "strategies": info, "sampling": sampling}
-    for material_stores in stores.values():
-        for path in material_stores.values():
-            zarr.open_group(path, mode="r+", zarr_format=3).attrs.update({"complete": True})
-    return result
+            paths = {name: str(folder / f"{name}.zarr") for name in strategy_names()}
+            if record is None or not all(finished_store(p, key) for p in paths.values()):
+                record = None
+                folder.mkdir(parents=True, exist_ok=True)
+                write = {name: create_reconstruction_store(Path(p), m.path, config.band_rows, name, key)
+                         for name, p in paths.items()}
+            stores[m.material_id] = paths
+        if record is not None:
+            records[m.material_id] = record
+            continue
+        scores, info, maxima = _submit_material(client, model_path, materials, m, _geometry(m), config, noise, write)
+        finals[m.material_id] = client.submit(_finish_material, str(record_path), key, m.cls, scores, info, maxima,
+                                              write, pure=False)
+    done = dict(zip(finals, wait_all(list(finals.values()), progress)))
+    return {"materials": {m.material_id: records.get(m.material_id) or done[m.material_id] for m in materials},
+            "reconstructions": stores, "reused": {m.material_id: m.material_id in records for m in materials},
+            "written": [mid for mid in stores if mid not in records]}

@@ -106,7 +106,7 @@ def scale_of(materials: Sequence[Material], geometry: Geometry, config: Evaluati
 
 def write_acquisition_report(out_dir: str | os.PathLike, summary: dict[str, Any]) -> dict[str, str]:
     """``report.json`` (everything) and ``report.html`` (claims, tables, renderings, ABRDFs) in ``out_dir``."""
-    from tasks.report import write_html, write_json
+    from tasks.report import reused_text, write_html, write_json
 
     out = Path(out_dir)
     write_json(out / "report.json", summary)
@@ -141,5 +141,6 @@ def write_acquisition_report(out_dir: str | os.PathLike, summary: dict[str, Any]
                          f"{scale['leds']} LEDs = {scale['light_view_pairs']} light/view pairs, "
                          f"{scale['texture'][0]}x{scale['texture'][1]} texels, {scale['materials']} materials",
                 **{f"claim ({k})": c["verdict"] for k, c in summary["claims"].items()},
-                "seconds": summary["seconds"]}, sections)
+                "seconds": summary["seconds"],
+                "reused from an earlier run": reused_text(summary["reused"])}, sections)
     return {"report_json": str(out / "report.json"), "report_html": str(out / "report.html")}

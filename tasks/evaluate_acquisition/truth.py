@@ -66,9 +66,8 @@ def render_truth_view(path: str, config: EvaluationConfig, prepared: tuple[Any, 
     return v
 
 
-def ensure_truth_database(config: EvaluationConfig, db: str | os.PathLike, client: Any, *,
-                          progress: Progress | None = None) -> list[str]:
-    """Write the truth stores of ``config`` into ``db`` (reusing finished ones), one Dask task per view.
+def pending_truth_specs(config: EvaluationConfig, db: str | os.PathLike) -> list[TruthSpec]:
+    """The materials of ``config`` whose truth store in ``db`` is not finished (a rerun writes only these).
 
     Raises
     ------
@@ -76,13 +75,9 @@ def ensure_truth_database(config: EvaluationConfig, db: str | os.PathLike, clien
         When a store at one of the paths holds something else (another
         configuration's truth, or not a truth store): nothing is overwritten.
     """
-    db = Path(db)
-    db.mkdir(parents=True, exist_ok=True)
-    device = config.build_device()
-    futures, paths = [], []
+    pending = []
     for spec in truth_specs(config):
-        path = db / f"{spec.material_id}.zarr"
-        paths.append(str(path))
+        path = Path(db) / f"{spec.material_id}.zarr"
         attrs = store_attrs(path)
         if attrs is not None:
             if attrs.get("kind") != TRUTH_KIND or attrs.get("ingest_hash") != _truth_hash(config, spec):
@@ -93,11 +88,31 @@ def ensure_truth_database(config: EvaluationConfig, db: str | os.PathLike, clien
                                      "truth store of this evaluation; choose another --db or remove the store")
             elif attrs.get("complete"):
                 continue
+        pending.append(spec)
+    return pending
+
+
+def ensure_truth_database(config: EvaluationConfig, db: str | os.PathLike, client: Any, *,
+                          progress: Progress | None = None) -> list[str]:
+    """Write the truth stores of ``config`` into ``db`` (reusing finished ones), one Dask task per view.
+
+    Raises
+    ------
+    ValueError
+        When a store at one of the paths holds something else (:func:`pending_truth_specs`).
+    """
+    db = Path(db)
+    db.mkdir(parents=True, exist_ok=True)
+    device = config.build_device()
+    futures = []
+    for spec in pending_truth_specs(config, db):
+        path = db / f"{spec.material_id}.zarr"
         create_truth_store(path, config, spec, device)
         prepared = client.submit(prepare_truth_material, spec, config, pure=False)
         futures += [client.submit(render_truth_view, str(path), config, prepared, t, c, pure=False)
                     for t in range(device.n_turn) for c in range(device.n_cam)]
     wait_all(futures, progress)
+    paths = [str(db / f"{spec.material_id}.zarr") for spec in truth_specs(config)]
     for path in paths:
         group = zarr.open_group(path, mode="r+", zarr_format=3)
         if not group.attrs.get("complete"):

@@ -7,7 +7,7 @@ import pytest
 
 @pytest.fixture()
 def run_btf(runtime_session, tmp_path_factory, monkeypatch, capsys):
-    """``run_btf(*args) -> (exit code, stdout, stderr)``: the real ``btf`` command line
+    """``run_btf(*args, progress=False) -> (exit code, stdout, stderr)``: the real ``btf`` command line
     (``flows.cli.main``) in this process, on the session's Prefect server and a one-worker
     threaded LocalCluster, so that a command costs about a second instead of a server start."""
     from flows.cli import main
@@ -16,9 +16,9 @@ def run_btf(runtime_session, tmp_path_factory, monkeypatch, capsys):
     profile.write_text("cluster: {kind: local, n_workers: 1, threads_per_worker: 1, processes: false}\n")
     monkeypatch.setenv("PREFECT_API_URL", runtime_session[1])
 
-    def run(*args) -> tuple[int, str, str]:
+    def run(*args, progress: bool = False) -> tuple[int, str, str]:
         capsys.readouterr()
-        code = main(["--cluster", str(profile), "--no-progress", *map(str, args)])
+        code = main(["--cluster", str(profile), *([] if progress else ["--no-progress"]), *map(str, args)])
         captured = capsys.readouterr()
         return code, captured.out, captured.err
 

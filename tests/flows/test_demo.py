@@ -3,15 +3,22 @@
 from __future__ import annotations
 
 import json
+import re
 
 import zarr
 
 
 def test_demo_simulates_calibrates_ingests_and_reports(run_btf, tmp_path):
     out = tmp_path / "demo"
-    code, stdout, stderr = run_btf("demo", "--out", out, "--materials", "2")
+    code, stdout, stderr = run_btf("demo", "--out", out, "--materials", "2", progress=True)
     assert code == 0, stderr[-3000:]
     assert json.loads(stdout)["materials"] == 2
+    # stderr is not a terminal here (a job log): every stage says when it starts and ends, timestamped
+    stamped = re.findall(r"^\d{4}-\d\d-\d\d \d\d:\d\d:\d\d (.+)$", stderr, re.M)
+    assert stamped[0] == "btf demo: checking the inputs ...", stderr[:2000]
+    for stage in ("simulate tiny", "ingest"):
+        assert f"{stage}: started" in stamped and any(s.startswith(f"{stage}: ") and s.endswith(", done")
+                                                       for s in stamped), stderr[-3000:]
     report = json.loads((out / "report.json").read_text())
     # the white standard calibrated every LED, and both illuminations were ingested with it
     assert report["radiometric"]["views"] == 12 and report["radiometric"]["max_relative_spread_over_views"] < 0.05
@@ -27,11 +34,18 @@ def test_demo_simulates_calibrates_ingests_and_reports(run_btf, tmp_path):
     btf = zarr.open_group(str(out / "btf-multiplexed" / "000-leather.zarr"), mode="r")
     assert btf.attrs["complete"] and "white-standard calibrated" in btf.attrs["units"]
     # a second run reuses every finished store
+    stderr_first = stderr
     code, _, stderr = run_btf("demo", "--out", out, "--materials", "2")
     assert code == 0, stderr[-3000:]
     again = json.loads((out / "report.json").read_text())
     assert again["stages"]["simulate"]["views_rendered"] == 0
     assert all(r["views_processed"] == 0 for r in again["ingest"].values())
+    # and says so, per stage, in its report (and, with progress, in one line per stage)
+    for stage in ("simulate", "ingest", "simulate multiplexed", "ingest multiplexed"):
+        reused, total = again["stages"][stage]["reused"]["views"]
+        assert reused == total > 0, (stage, again["stages"][stage])
+        assert report["stages"][stage]["reused"]["views"][0] == 0
+    assert "simulate: reused 0 of " in stderr_first and "ingest: reused 0 of " in stderr_first
 
 
 def test_ingest_white_standard_errors_name_the_store(run_btf, tiny_database, tmp_path):

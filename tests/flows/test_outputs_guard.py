@@ -7,6 +7,7 @@ and failed on the code before the fix.
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 import time
@@ -18,6 +19,17 @@ import zarr
 from flows.cli import EXIT_BAD_INPUT, EXIT_FAILED
 
 ROOT = Path(__file__).resolve().parents[2]
+
+
+#: A progress/info line of a run outside a terminal (flows.progress.say): timestamp, command, text.
+INFO_LINE = re.compile(r"^\d{4}-\d\d-\d\d \d\d:\d\d:\d\d btf [\w-]+: ")
+
+
+def _the_one_error_line(err: str) -> bool:
+    """The problem is said in exactly one line, the last; any line before it is a timestamped info line."""
+    lines = err.splitlines()
+    return bool(lines) and err.endswith("\n") and not INFO_LINE.match(lines[-1]) \
+        and all(INFO_LINE.match(line) for line in lines[:-1])
 
 
 def _tree(path: Path) -> dict[str, int]:
@@ -60,7 +72,7 @@ def test_output_under_a_regular_file_is_one_line(run_btf, tiny_database, tmp_pat
     blocker.write_text("not a folder")
     code, _, err = run_btf("ingest", _capture(tiny_database), "--out", blocker / "btf.zarr")
     assert code == EXIT_BAD_INPUT, err
-    assert err.count("\n") == 1 and f"{blocker} is a file, not a folder" in err and "Traceback" not in err, err
+    assert _the_one_error_line(err) and f"{blocker} is a file, not a folder" in err and "Traceback" not in err, err
 
 
 def test_render_to_proc_is_one_line(run_btf, tiny_btf):
@@ -92,7 +104,7 @@ def test_full_disk_is_a_failed_run_in_one_line(tiny_database, full_disk):
     code, err = done.returncode, done.stderr
     assert code == EXIT_FAILED, err
     assert "No space left on device" in err and "free space or choose another --out" in err, err
-    assert "Traceback" not in err and err.count("\n") == 1, err
+    assert "Traceback" not in err and _the_one_error_line(err), err
 
 
 def test_half_made_capture_store_is_rebuilt(run_btf, tmp_path):

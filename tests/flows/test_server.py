@@ -1,0 +1,140 @@
+"""``btf server start|status|stop``: a Prefect server that later commands reuse (real processes).
+
+Each test has its own state folder (``XDG_STATE_HOME``), so that no running ``btf server`` of the
+user's is touched or used, and stops what it started in a ``finally``.
+"""
+
+from __future__ import annotations
+
+import datetime
+import json
+import os
+import shlex
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from flows.server import is_alive, recorded_server_url, running_server, server_status, state_file, stop_server
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _environ(state_home: Path) -> dict[str, str]:
+    """A ``btf`` subprocess' environment: this state folder, no API or profile chosen by the session."""
+    environ = {key: value for key, value in os.environ.items()
+               if key not in ("PREFECT_API_URL", "BTF_CLUSTER_CONFIG")}
+    return {**environ, "XDG_STATE_HOME": str(state_home)}
+
+
+def _btf(state_home: Path, *args: str, timeout: float = 120) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "flows.cli", *args], cwd=REPO, env=_environ(state_home),
+                          capture_output=True, text=True, timeout=timeout)
+
+
+def _group_members(pgid: int) -> list[int]:
+    """Live (not zombie) processes of process group ``pgid``."""
+    members = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rpartition(")")[2].split()
+        except OSError:
+            continue
+        if int(fields[2]) == pgid and fields[0] not in ("Z", "X"):
+            members.append(int(stat.parent.name))
+    return members
+
+
+@pytest.fixture()
+def state_home(tmp_path, monkeypatch):
+    """A private ``XDG_STATE_HOME``; any ``btf server`` started in it is stopped at the end."""
+    home = tmp_path / "state"
+    monkeypatch.setenv("XDG_STATE_HOME", str(home))
+    try:
+        yield home
+    finally:
+        state = server_status(state_file())
+        stop_server(state_file())
+        if isinstance(state.get("pid"), int) and is_alive(state["pid"]):  # pragma: no cover (stop failed)
+            os.killpg(state["pid"], 9)
+
+
+def _flow_runs_since(url: str, since: datetime.datetime) -> list[dict]:
+    import httpx
+
+    body = {"flow_runs": {"expected_start_time": {"after_": since.isoformat()}}, "limit": 50}
+    response = httpx.post(f"{url}/flow_runs/filter", json=body, timeout=10)
+    response.raise_for_status()
+    return response.json()
+
+
+@pytest.mark.skipif(not Path("/proc").is_dir(), reason="checks the server's processes in /proc")
+def test_server_start_status_is_used_then_stop_leaves_no_process(state_home, tmp_path):
+    started = _btf(state_home, "server", "start", "--timeout", "90")
+    assert started.returncode == 0, started.stderr
+    server = json.loads(started.stdout)
+    assert server["status"] == "running" and server["started_now"] is True
+    assert server["url"].startswith("http://127.0.0.1:") and server["host"] == "127.0.0.1"
+    state = json.loads(Path(server["state_file"]).read_text())
+    assert Path(server["state_file"]) == state_home / "btf-pipeline" / "server.json"
+    assert set(state) == {"url", "pid", "port", "host", "log", "started"}  # no token, nothing secret
+    assert is_alive(state["pid"])
+
+    assert recorded_server_url() == running_server() == server["url"]
+    status = _btf(state_home, "server", "status")
+    assert status.returncode == 0 and json.loads(status.stdout)["status"] == "running"
+    again = json.loads(_btf(state_home, "server", "start").stdout)
+    assert again["started_now"] is False and again["pid"] == state["pid"]
+
+    # a tiny computing command reports to it instead of starting a temporary server
+    profile = tmp_path / "threaded.yaml"
+    profile.write_text("cluster: {kind: local, n_workers: 1, threads_per_worker: 1, processes: false}\n")
+    since = datetime.datetime.now(datetime.timezone.utc) - datetime.timedelta(seconds=5)
+    out = tmp_path / "db"
+    run = _btf(state_home, "--cluster", str(profile), "--no-progress", "simulate", "--device", "tiny",
+               "--materials", "1", "--turntable", "1", "--texture-size", "8", "--out", str(out))
+    assert run.returncode == 0, run.stderr
+    assert server["url"] in run.stderr  # the run's log names the API it used
+    assert "Starting temporary server" not in run.stderr
+    runs = [r for r in _flow_runs_since(server["url"], since) if str(out) in json.dumps(r.get("parameters"))]
+    assert runs and all(r["state_type"] == "COMPLETED" for r in runs), runs
+
+    stopped = _btf(state_home, "server", "stop")
+    assert stopped.returncode == 0 and json.loads(stopped.stdout)["stopped_now"] is True
+    assert not is_alive(state["pid"]) and _group_members(state["pid"]) == []
+    assert not Path(server["state_file"]).exists() and recorded_server_url() is None
+    assert json.loads(_btf(state_home, "server", "status").stdout)["status"] == "stopped"
+
+
+def test_a_stale_state_file_is_ignored_and_said_so(state_home, capsys):
+    path = state_file()
+    path.parent.mkdir(parents=True)
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])  # a process id that is no longer in use
+    dead.wait()
+    path.write_text(json.dumps({"url": "http://127.0.0.1:9/api", "pid": dead.pid, "port": 9}))
+    assert running_server() is None
+    line = capsys.readouterr().err
+    assert line.count("\n") == 1 and "ignoring" in line and str(path) in line and "not running" in line
+
+    # a live process that is no Prefect server (its id reused) is not trusted either, nor signalled
+    path.write_text(json.dumps({"url": "http://127.0.0.1:9/api", "pid": os.getpid(), "port": 9}))
+    assert running_server() is None
+    assert "ignoring" in capsys.readouterr().err
+    assert stop_server()["stopped_now"] is False and not path.exists()  # removed, nothing killed
+
+
+@pytest.mark.skipif(shutil.which("script") is None, reason="needs util-linux `script` for a terminal")
+def test_no_telemetry_notice_in_a_terminal(tmp_path):
+    """Prefect prints its first-run telemetry notice on `import prefect` in a terminal; the runtime's
+    `quiet_logs` imports it with DO_NOT_TRACK set, so a first `btf` run shows none."""
+    def first_run_in_a_terminal(code: str, home: Path) -> str:
+        environ = {k: v for k, v in os.environ.items() if k not in ("DO_NOT_TRACK", "CI")}
+        command = f"{shlex.quote(sys.executable)} -c {shlex.quote(code)}"
+        return subprocess.run(["script", "-qec", command, "/dev/null"], cwd=REPO, capture_output=True, text=True,
+                              env={**environ, "PREFECT_HOME": str(home)}, timeout=120).stdout
+
+    assert "anonymous usage data" in first_run_in_a_terminal("import prefect", tmp_path / "a")  # the notice exists
+    assert "anonymous usage data" not in first_run_in_a_terminal(
+        "from flows.runtime import quiet_logs; quiet_logs()", tmp_path / "b")
