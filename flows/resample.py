@@ -11,6 +11,9 @@ from prefect.cache_policies import NO_CACHE
 from flows.runtime import RETRY_ONCE
 from tasks.report import write_json
 
+#: Share of the resampled rows outside the measured hull above which the report warns.
+OUTSIDE_HULL_WARN = 0.10
+
 
 # Retrying the stage resumes it: finished target views are skipped, pending ones re-run; bad input is
 # not retried (it would only fail again).
@@ -41,6 +44,21 @@ def resample_flow(btf: str, out: str, sampling: str, scheduler_address: str, ove
     stage = resample_stage(btf, out, sampling, scheduler_address, overwrite, progress)
     report = {"report": "btf-resample", "btf": btf, "out": out, "sampling": stage["sampling"],
               "rows": stage["rows"], "outside_hull_rows": stage["outside_hull_rows"],
-              "seconds": stage["seconds"], "stages": {"resample": stage}}
+              "seconds": stage["seconds"], "warnings": outside_hull_warnings(stage), "stages": {"resample": stage}}
+    if progress:
+        from flows.progress import say
+
+        for warning in report["warnings"]:
+            say(f"btf resample: warning: {warning}")
     write_json(Path(out).with_name(Path(out).stem + ".report.json"), report)
     return report
+
+
+def outside_hull_warnings(stage: dict[str, Any]) -> list[str]:
+    """A warning when more than :data:`OUTSIDE_HULL_WARN` of the rows are not interpolated but extrapolated."""
+    outside, rows = stage["outside_hull_rows"], max(stage["rows"], 1)
+    if outside / rows <= OUTSIDE_HULL_WARN:
+        return []
+    return [f"{outside / rows:.0%} of the resampled rows ({outside} of {rows}) lie outside the hull of the measured "
+            "light/view directions: they take the values of the nearest hull point, not measured data (flagged in "
+            "the store's outside_hull array); use a target sampling within the dome's directions, or mask those rows"]

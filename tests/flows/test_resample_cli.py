@@ -35,6 +35,9 @@ def test_cli_resamples_onto_ubo2014_and_names_bad_input(tiny_btf, tmp_path, runt
     btf = group["btf"][...]
     assert btf.shape == (22801, 8, 8, 3) and np.isfinite(btf).all() and btf.min() >= 0 and btf.max() > 0
     assert report["outside_hull_rows"] == int(group["outside_hull"][...].sum()) > 0
+    share = report["outside_hull_rows"] / report["rows"]
+    assert (share > 0.1) == bool(report["warnings"]), (share, report["warnings"])
+    assert all(f"{share:.0%} of the resampled rows" in w for w in report["warnings"])
     # its textures export like an ingested store's, named by (view, light)
     assert main(["export-exr", str(out), "--out", str(tmp_path / "exr"), "--lv", "0,22800"]) == 0
     capsys.readouterr()
@@ -99,3 +102,11 @@ def test_a_failed_staged_overwrite_keeps_store_and_report_and_the_rerun_swaps_th
     assert sorted(p.name for p in out.parent.iterdir()) == ["r.report.json", "r.zarr"]
     assert json.loads(report.read_text())["rows"] == 64 and json.loads(report.read_text())["sampling"] == "own.json"
     np.testing.assert_allclose(zarr.open_group(str(out), mode="r")["btf"][...], group["btf"][...], rtol=1e-6)
+
+
+def test_outside_hull_warning_on_both_sides_of_its_threshold():
+    from flows.resample import outside_hull_warnings
+
+    assert outside_hull_warnings({"outside_hull_rows": 10, "rows": 100}) == []
+    (warning,) = outside_hull_warnings({"outside_hull_rows": 68, "rows": 100})
+    assert warning.startswith("68% of the resampled rows (68 of 100) lie outside the hull")
