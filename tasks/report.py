@@ -275,14 +275,23 @@ def abrdf_image(store: CaptureStore, out: Path, prefix: str) -> dict:
     return {"file": name, "texel": [h // 2, w // 2], "shape": [n_views, store.n_leds]}
 
 
-def write_html(path: Path, title: str, summary: dict[str, Any], sections: list[dict[str, Any]]) -> Path:
-    """A self-contained HTML page of figure sections (PNG files beside it)."""
+#: The other reports a demo writes, relative to its folder: (file, what it shows).
+RELATED_REPORTS = (("model/report.html", "model database (build-db)"),
+                   ("acquisition/report.html", "acquisition evaluation"))
+
+
+def write_html(path: Path, title: str, summary: dict[str, Any], sections: list[dict[str, Any]],
+               links: Sequence[tuple[str, str]] = ()) -> Path:
+    """A self-contained HTML page of figure sections (PNG files beside it), linking ``links`` ``(href, label)``."""
     parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>",
              "<style>body{font-family:sans-serif;max-width:1200px;margin:auto;padding:1em}"
              "figure{display:inline-block;margin:6px;text-align:center;font-size:12px}"
              "img{image-rendering:pixelated;border:1px solid #ccc}"
              "table{border-collapse:collapse}td,th{border:1px solid #ccc;padding:3px 8px;font-size:13px}"
              "</style></head><body>", f"<h1>{html.escape(title)}</h1>"]
+    if links:
+        parts.append("<p>See also: " + " | ".join(f"<a href='{html.escape(href)}'>{html.escape(label)}</a>"
+                                                  for href, label in links) + "</p>")
     parts.append("<table>" + "".join(
         f"<tr><th>{html.escape(str(k))}</th><td>{html.escape(json.dumps(v, default=_json_default) if not isinstance(v, str) else v)}</td></tr>"
         for k, v in summary.items()) + "</table>")
@@ -455,5 +464,7 @@ def simulation_report(out_dir: str | Path, device: Device, store_paths: Sequence
         **{f"{name} stage": ", ".join(f"reused {reused_text(v)}" if k == "reused" else f"{k} {v}"
                                       for k, v in figures.items()) for name, figures in stages.items()},
     }
-    write_html(out / "report.html", f"btf-pipeline report: {run.get('command', 'simulate')}", summary, sections)
+    links = [(href, label) for href, label in RELATED_REPORTS if (out / href).is_file()]
+    write_html(out / "report.html", f"btf-pipeline report: {run.get('command', 'simulate')}", summary, sections,
+               links)
     return report
