@@ -556,6 +556,17 @@ def _io_args(args: argparse.Namespace) -> tuple[dict[str, str], dict[str, str]]:
     return named(command.outputs), named(command.inputs)
 
 
+def _absolute_paths(args: argparse.Namespace, command: Command) -> None:
+    """Make the input and output paths of ``args`` absolute: the cluster's workers open them, and a
+    ``btf server``'s workers (or a batch system's) do not run in the folder the command was typed in."""
+    for dest in (*command.inputs, *command.outputs):
+        value = getattr(args, dest, None)
+        if isinstance(value, str) and value and "://" not in value:
+            setattr(args, dest, os.path.abspath(value))
+        elif isinstance(value, list):
+            setattr(args, dest, [os.path.abspath(v) if isinstance(v, str) and "://" not in v else v for v in value])
+
+
 def _preflight(args: argparse.Namespace, command: Command) -> dict:
     """Everything a command can refuse before Prefect and a cluster start; what it prepared on the way.
 
@@ -576,6 +587,7 @@ def _preflight(args: argparse.Namespace, command: Command) -> dict:
     from flows.runtime import load_profile
 
     prepared["profile"] = load_profile(args.cluster)
+    _absolute_paths(args, command)
     if command.prepare is not None:
         command.prepare(args, prepared)
     return prepared
@@ -656,14 +668,20 @@ def _label(args: argparse.Namespace) -> str:
 
 def _starting_line(label: str, profile: Any) -> str:
     """What a computing command starts once its inputs are checked: the Prefect API and the Dask cluster
-    of ``profile`` (a :class:`flows.runtime.Profile`)."""
+    of ``profile`` (a :class:`flows.runtime.Profile`), or the ``btf server``'s where one is recorded."""
+    from flows.server import recorded_server_url
+
     url = os.environ.get("PREFECT_API_URL") or profile.prefect.get("api_url")
-    api = (f"connecting to the Prefect API at {url} and starting" if url
-           else "starting a local Prefect API (unless a `btf server` runs) and")
+    server = None if url else recorded_server_url()
     cluster = profile.cluster
     workers, threads = cluster.get("n_workers", 2), cluster.get("threads_per_worker", 1)
     size = (f"{workers} worker{'s' * (workers != 1)} x {threads} thread{'s' * (threads != 1)}"
             + (", in this process" if cluster.get("processes") is False else ""))
+    if server:
+        return (f"{label}: connecting to the btf server's Prefect API at {server} and its {cluster.get('kind', 'local')} "
+                f"Dask cluster (or starting one: {size}; profile {profile.path}) ...")
+    api = (f"connecting to the Prefect API at {url} and starting" if url
+           else "starting a local Prefect API and")
     return f"{label}: {api} a {cluster.get('kind', 'local')} Dask cluster ({size}; profile {profile.path}) ..."
 
 
@@ -684,7 +702,8 @@ def _main(args: argparse.Namespace) -> int:
     with runtime(prepared["profile"]) as (profile, url, client):
         if info:
             dashboard = f", dashboard {client.dashboard_link}" if profile.cluster.get("dashboard") else ""
-            say(f"{_label(args)}: Prefect API {url} and Dask cluster {client.scheduler.address} ready after "
+            whose = " (the btf server's)" if client.cluster is None else ""
+            say(f"{_label(args)}: Prefect API {url} and Dask cluster {client.scheduler.address}{whose} ready after "
                 f"{time.perf_counter() - start:.1f} s{dashboard}")
         summary = command.flow(args, client.scheduler.address, prepared)
     print(json.dumps({**summary, "seconds": round(time.perf_counter() - start, 2)}, indent=2))

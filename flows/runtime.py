@@ -459,32 +459,35 @@ def prefect_api(profile: Profile) -> Iterator[str]:
         When the configured server does not answer or the temporary one does not
         start within ``prefect.startup_timeout_s``; never hangs.
     """
-    from prefect.settings import PREFECT_API_URL, temporary_settings
-
     with _starting_prefect_api(profile) as (_url, ready):
         url = ready()
-        with temporary_settings({PREFECT_API_URL: url}):
+        with temporary_settings_of_run(url):
             yield url
 
 
-@contextlib.contextmanager
-def dask_client(profile: Profile, prefect_url: str | None = None) -> Iterator[Any]:
-    """Start the profile's Dask cluster and yield a connected ``distributed.Client``.
-
-    Every socket of the cluster binds ``cluster.host`` (default 127.0.0.1), the scheduler's HTTP server
-    ``cluster.dashboard_address`` (default the same host); a profile that binds beyond this machine
-    without TLS gets one warning line per socket kind on stderr (:func:`exposure_warnings`). On exit
-    the client is closed first, then the cluster, without Dask's shutdown warnings (:func:`_close_quietly`).
-    """
-    import dask
-
-    start = _CLUSTER_STARTERS[profile.cluster.get("kind", "local")]  # load_profile refused other kinds
+def worker_environ(prefect_url: str | None) -> dict[str, str]:
+    """The environment every Dask worker process of a run starts with: ``WORKER_ENVIRON``, the run's
+    Prefect API and, where this process has them, the log levels and ``BTF_SHARED_DATA``."""
     environ = dict(WORKER_ENVIRON)
     if prefect_url:
         environ["PREFECT_API_URL"] = prefect_url
     for key in ("PREFECT_LOGGING_LEVEL", "PREFECT_LOGGING_TO_API_ENABLED", "BTF_SHARED_DATA"):
         if key in os.environ:
             environ[key] = os.environ[key]
+    return environ
+
+
+def start_cluster(profile: Profile, environ: dict[str, str]) -> Any:
+    """Start the profile's Dask cluster, its workers with ``environ`` (:func:`worker_environ`).
+
+    Every socket of the cluster binds ``cluster.host`` (default 127.0.0.1), the scheduler's HTTP server
+    ``cluster.dashboard_address`` (default the same host); a profile that binds beyond this machine
+    without TLS gets one warning line per socket kind on stderr (:func:`exposure_warnings`). Close it
+    with :func:`_close_quietly`, which does so without Dask's shutdown warnings.
+    """
+    import dask
+
+    start = _CLUSTER_STARTERS[profile.cluster.get("kind", "local")]  # load_profile refused other kinds
     for line in exposure_warnings(profile):
         print(line, file=sys.stderr)
     # distributed's nanny applies pre-spawn-environ to this process's os.environ too:
@@ -494,24 +497,65 @@ def dask_client(profile: Profile, prefect_url: str | None = None) -> Iterator[An
         with dask.config.set({"distributed.nanny.pre-spawn-environ": environ,
                               "distributed.worker.daemon": False}):
             try:
-                cluster = start(profile.cluster)
+                return start(profile.cluster)
             except Exception as exc:
                 raise RuntimeUnavailable(f"could not start the Dask cluster of {profile.path}: {exc}") from exc
-            client = None
-            try:
-                from distributed import Client
-
-                client = Client(cluster)
-                client.register_plugin(WorkerSetup(), name="btf-worker-setup")
-                yield client
-            finally:
-                _close_quietly(client, cluster)
     finally:
         for key, value in saved.items():
             if value is None:
                 os.environ.pop(key, None)
             else:
                 os.environ[key] = value
+
+
+@contextlib.contextmanager
+def dask_client(profile: Profile, prefect_url: str | None = None) -> Iterator[Any]:
+    """Yield a ``distributed.Client`` of the profile's Dask cluster, with :func:`WorkerSetup` registered.
+
+    The cluster is the one a running ``btf server`` keeps (:func:`flows.server.server_cluster`) where
+    it was started with this run's profile, worker environment and code; else one started here
+    (:func:`start_cluster`) and closed on exit, the client first (:func:`_close_quietly`).
+    """
+    from distributed import Client
+
+    from flows.server import server_cluster
+
+    environ = worker_environ(prefect_url)
+    address = server_cluster(cluster_settings(profile, environ))
+    if address:
+        client = Client(address, timeout="10s")
+        try:
+            client.register_plugin(WorkerSetup(), name="btf-worker-setup")
+            yield client
+        finally:
+            with contextlib.suppress(Exception):
+                client.close(timeout=10)
+        return
+    cluster = start_cluster(profile, environ)
+    client = None
+    try:
+        client = Client(cluster)
+        client.register_plugin(WorkerSetup(), name="btf-worker-setup")
+        yield client
+    finally:
+        _close_quietly(client, cluster)
+
+
+def cluster_settings(profile: Profile, environ: dict[str, str]) -> dict[str, Any]:
+    """What makes two Dask clusters interchangeable for a run: the profile's ``cluster:`` section, the
+    workers' environment, this interpreter and the pipeline's code (each ``.py`` file's size and
+    modification time: workers import it once, when they start). A ``btf server``'s cluster is used
+    only by a run whose settings equal the ones it was started with."""
+    import hashlib
+
+    root = Path(__file__).resolve().parents[1]
+    code = hashlib.sha256()
+    for package in ("btfcore", "tasks", "flows"):
+        for path in sorted((root / package).rglob("*.py")):
+            stat = path.stat()
+            code.update(f"{path.relative_to(root)}:{stat.st_size}:{stat.st_mtime_ns};".encode())
+    return {"cluster": dict(profile.cluster), "environ": dict(sorted(environ.items())),
+            "python": sys.executable, "code": code.hexdigest()[:16]}
 
 
 def _local_cluster(spec: dict[str, Any]) -> Any:
@@ -634,7 +678,23 @@ def runtime(profile: Profile | str | os.PathLike | None = None) -> Iterator[tupl
         with _starting_prefect_api(profile) as (url, ready), dask_client(profile, url) as client:
             quieted.result()
             url = ready()
-            from prefect.settings import PREFECT_API_URL, temporary_settings
-
-            with temporary_settings({PREFECT_API_URL: url}):
+            with temporary_settings_of_run(url):
                 yield profile, url, client
+
+
+#: Prefect's flow-run heartbeat thread sleeps in whole seconds and is joined when a flow run ends, so
+#: every flow run (a demo has several) ended up to a second late (0.9 s of a 1-second ``btf ingest``,
+#: measured with cProfile, docs/benchmarks.md). The heartbeats only feed server automations that
+#: mark silent runs as crashed, which a default setup does not have; a user who configured one sets
+#: ``PREFECT_FLOWS_HEARTBEAT_FREQUENCY`` and keeps them (docs/decisions.md).
+HEARTBEAT_ENV = "PREFECT_FLOWS_HEARTBEAT_FREQUENCY"
+
+
+def temporary_settings_of_run(api_url: str) -> contextlib.AbstractContextManager:
+    """Prefect settings of one run: its API, and no flow-run heartbeats unless ``HEARTBEAT_ENV`` is set."""
+    from prefect.settings import PREFECT_API_URL, PREFECT_FLOWS_HEARTBEAT_FREQUENCY, temporary_settings
+
+    updates: dict[Any, Any] = {PREFECT_API_URL: api_url}
+    if HEARTBEAT_ENV not in os.environ and "PREFECT_RUNNER_HEARTBEAT_FREQUENCY" not in os.environ:
+        updates[PREFECT_FLOWS_HEARTBEAT_FREQUENCY] = None
+    return temporary_settings(updates)

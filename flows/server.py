@@ -1,14 +1,15 @@
-"""A local Prefect server that outlives one ``btf`` command: ``btf server start|stop|status``.
+"""A local Prefect server and Dask cluster that outlive one ``btf`` command: ``btf server start|stop|status``.
 
-Without one, every computing command starts a temporary Prefect server (10-30 s on two cores) and
-stops it at the end. ``btf server start`` starts one that stays up, bound to 127.0.0.1 on a free
+Without one, every computing command starts a temporary Prefect server (10-30 s on two cores) and a
+Dask cluster, and stops both at the end. ``btf server start`` starts one that stays up, bound to 127.0.0.1 on a free
 port, and writes its URL and process id to a state file (:func:`state_file`, no token or secret in
 it); ``flows.runtime.prefect_api`` then uses it instead of starting a temporary one, unless the
 execution profile's ``prefect.api_url`` or ``PREFECT_API_URL`` names another API. A state file whose
 process is gone or whose URL does not answer is ignored, with one line saying so
-(docs/architecture.md, "Execution").
+(docs/architecture.md, "Execution"). Beside it, :mod:`flows.cluster_service` keeps the profile's
+Dask cluster, which :func:`server_cluster` offers to runs started with the same settings.
 
-This module starts only processes and reads only its state file: it imports no Prefect or Dask
+This module starts only processes and reads only its state files: it imports no Prefect or Dask
 code, so that ``btf --help`` stays fast.
 """
 
@@ -30,13 +31,15 @@ from typing import Any
 #: Where every socket of a default run listens, the ``btf server`` included: this machine only.
 LOOPBACK = "127.0.0.1"
 
-SERVER_HELP = ("A Prefect server that stays up between commands, on 127.0.0.1 and a free port: `start` starts it "
-               "(and prints its URL; every later computing command reports to it instead of starting a "
-               "temporary server, unless the profile's prefect.api_url or PREFECT_API_URL names another), "
-               "`status` says whether it runs and answers, `stop` stops it. Its URL and process id are kept in "
-               "$XDG_STATE_HOME/btf-pipeline/server.json (default ~/.local/state/...), its log beside it. "
-               "Its runs are kept in Prefect's database (PREFECT_HOME, ~/.prefect) and shown by its UI at the "
-               "URL without /api.")
+SERVER_HELP = ("A Prefect server and a Dask cluster that stay up between commands, on 127.0.0.1: `start` starts "
+               "both (the cluster of the execution profile, --cluster or the default) and prints their addresses; "
+               "every later computing command reports to that server instead of starting a temporary one, "
+               "unless the profile's prefect.api_url or PREFECT_API_URL names another, and runs on that cluster "
+               "where its profile, log level and the pipeline's code are the ones the cluster was started with "
+               "(else it starts its own and says why). `status` says whether they run and answer, `stop` stops "
+               "both. Their addresses and process ids are kept in $XDG_STATE_HOME/btf-pipeline/server.json and "
+               "cluster.json (default ~/.local/state/...), their logs beside them. The runs are kept in Prefect's "
+               "database (PREFECT_HOME, ~/.prefect) and shown by its UI at the URL without /api.")
 
 
 class RuntimeUnavailable(RuntimeError):
@@ -74,15 +77,70 @@ def is_alive(pid: int) -> bool:
     return stat.rpartition(")")[2].split()[0] not in ("Z", "X")
 
 
-def _is_server_process(pid: Any) -> bool:
-    """Whether ``pid`` is a live process that runs a Prefect server (not a reused process id)."""
+def _runs(pid: Any, *words: bytes) -> bool:
+    """Whether ``pid`` is a live process whose command line holds ``words`` (not a reused process id)."""
     if not isinstance(pid, int) or pid <= 0 or not is_alive(pid):
         return False
     try:
         cmdline = Path(f"/proc/{pid}/cmdline").read_bytes()
     except OSError:  # no /proc (macOS): the live pid is all we can check
         return True
-    return b"prefect" in cmdline and b"server" in cmdline
+    return all(word in cmdline for word in words)
+
+
+def _is_server_process(pid: Any) -> bool:
+    """Whether ``pid`` is a live process that runs a Prefect server."""
+    return _runs(pid, b"prefect", b"server")
+
+
+#: The module a ``btf server``'s Dask cluster runs in (its own process, beside the Prefect server).
+CLUSTER_SERVICE = "flows.cluster_service"
+
+#: What each key of :func:`flows.runtime.cluster_settings` means, for the line that says why a run
+#: does not use the ``btf server``'s cluster.
+_SETTING_NAMES = {"cluster": "cluster section of the profile", "environ": "worker environment (log level, "
+                  "Prefect API, BTF_SHARED_DATA)", "python": "Python interpreter", "code": "pipeline code"}
+
+
+def cluster_state_file(path: Path | None = None) -> Path:
+    """The state file of the ``btf server``'s Dask cluster: ``cluster.json`` beside :func:`state_file`."""
+    return (path or state_file()).with_name("cluster.json")
+
+
+def _cluster_status(path: Path | None = None) -> dict[str, Any] | None:
+    """The cluster state file's content with ``status`` running or stale (``reason``); None without one."""
+    cluster_path = cluster_state_file(path)
+    state = _read_state(cluster_path)
+    if state is None:
+        return None
+    info = {key: state.get(key) for key in ("address", "pid", "profile", "log")}
+    if not _runs(state.get("pid"), CLUSTER_SERVICE.encode()) or not isinstance(state.get("address"), str):
+        return {**info, "state_file": str(cluster_path), "status": "stale",
+                "reason": f"process {state.get('pid')} is not running"}
+    return {**info, "state_file": str(cluster_path), "status": "running", "settings": state.get("settings", {})}
+
+
+def server_cluster(settings: dict[str, Any], path: Path | None = None) -> str | None:
+    """The scheduler address of the ``btf server``'s Dask cluster where it runs and was started with
+    ``settings`` (:func:`flows.runtime.cluster_settings` of this run), else None.
+
+    A run whose settings differ (another profile, log level or Prefect API, edited code) starts its own
+    cluster, with one line on stderr that says which setting differs and how to restart the server's.
+    """
+    status = _cluster_status(path)
+    if status is None:
+        return None
+    if status["status"] != "running":
+        print(f"btf: ignoring the btf server's Dask cluster ({status['state_file']}): {status['reason']} "
+              "(`btf server stop` and `btf server start` restart it)", file=sys.stderr)
+        return None
+    differ = [_SETTING_NAMES.get(key, key) for key in settings if status["settings"].get(key) != settings[key]]
+    if differ:
+        print(f"btf: not using the btf server's Dask cluster {status['address']}: this run's "
+              f"{' and '.join(differ)} {'differ' if len(differ) > 1 else 'differs'} from the ones it was started with, so this run starts its own "
+              "(`btf server stop` and `btf server start` restart it with the current ones)", file=sys.stderr)
+        return None
+    return status["address"]
 
 
 def recorded_server_url(path: Path | None = None) -> str | None:
@@ -105,16 +163,21 @@ def is_healthy(api_url: str, timeout: float = 2.0) -> bool:
 
 
 def server_status(path: Path | None = None) -> dict[str, Any]:
-    """What the state file says and whether it holds: ``{"status": "running" | "stopped" | "stale", ...}``.
+    """What the state files say and whether it holds: ``{"status": "running" | "stopped" | "stale", ...}``.
 
     ``running``: its process runs and its URL answers ``/health``; ``stale``: a state file whose process
-    is gone or whose URL does not answer (``reason`` says which); ``stopped``: no state file.
+    is gone or whose URL does not answer (``reason`` says which); ``stopped``: no state file. ``cluster``
+    is the state of the server's Dask cluster (address, process, status), where there is one.
     """
     path = path or state_file()
     state = _read_state(path)
+    cluster = _cluster_status(path)
+    if cluster is not None:
+        cluster.pop("settings", None)
+    extra = {"cluster": cluster} if cluster is not None else {}
     if state is None:
-        return {"status": "stopped", "state_file": str(path)}
-    info = {**state, "state_file": str(path)}
+        return {"status": "stopped", "state_file": str(path), **extra}
+    info = {**state, "state_file": str(path), **extra}
     if not _is_server_process(state.get("pid")):
         return {**info, "status": "stale", "reason": f"process {state.get('pid')} is not running"}
     if not isinstance(state.get("url"), str) or not is_healthy(state["url"]):
@@ -169,47 +232,78 @@ def _log_tail(log: Path, n_lines: int = 5) -> str:
     return ""
 
 
-def start_server(timeout: float = 90, path: Path | None = None) -> dict[str, Any]:
+def _spawn(argv: list[str], log: Path, cwd: Path) -> subprocess.Popen:
+    """Start ``argv`` in its own session (it outlives this process and a terminal's Ctrl-C), logging to ``log``."""
+    with open(log, "ab") as log_file:
+        return subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=log_file, stderr=subprocess.STDOUT,
+                                env=_server_environ(), start_new_session=True, cwd=str(cwd))
+
+
+def _wait_for(ready: Any, process: subprocess.Popen, deadline: float, what: str, log: Path) -> None:
+    """Wait until ``ready()``; raise :class:`RuntimeUnavailable` (and stop ``process``) if it exits first
+    or ``deadline`` passes."""
+    while not ready():
+        if process.poll() is not None or time.monotonic() > deadline:
+            why = (f"exited with code {process.returncode}" if process.poll() is not None
+                   else "did not start in time")
+            _stop_pid(process.pid)
+            raise RuntimeUnavailable(f"the btf server's {what} {why}: {_log_tail(log)} (log: {log})")
+        time.sleep(0.3)
+
+
+def start_server(timeout: float = 90, path: Path | None = None, profile: str | None = None) -> dict[str, Any]:
     """Start a ``btf server`` (or find the one running) and return its status.
 
-    The server is ``prefect server start`` in its own session (it outlives this process and a
-    terminal's Ctrl-C), bound to 127.0.0.1 on a free port, logging to ``server.log`` beside the state
-    file. The state file is written once the server answers ``/health``.
+    The server is two processes, each in its own session and logging beside the state file: ``prefect
+    server start`` bound to 127.0.0.1 on a free port (``server.log``), and the Dask cluster of the
+    execution profile ``profile`` (default: ``$BTF_CLUSTER_CONFIG`` or ``infra/local.yaml``), started
+    by :mod:`flows.cluster_service` at the same time, its workers reporting to that server
+    (``cluster.log``). Each state file is written once its process answers. A server that runs without
+    its cluster (it exited) gets a new one.
 
     Raises
     ------
     RuntimeUnavailable
-        The server exited or did not answer within ``timeout`` seconds (the message holds the end of
-        its log); its process is stopped.
+        A process exited or did not answer within ``timeout`` seconds (the message holds the end of
+        its log); what was started is stopped.
     """
     path = path or state_file()
     status = server_status(path)
-    if status["status"] == "running":
+    cluster_running = (status.get("cluster") or {}).get("status") == "running"
+    if status["status"] == "running" and cluster_running:
         return {**status, "started_now": False}
     path.parent.mkdir(parents=True, exist_ok=True)
-    log = path.with_name("server.log")
-    port = free_port()
-    url = f"http://{LOOPBACK}:{port}/api"
-    with open(log, "ab") as log_file:
-        process = subprocess.Popen(
-            [sys.executable, "-m", "prefect", "server", "start", "--host", LOOPBACK, "--port", str(port),
-             "--analytics-off"],
-            stdin=subprocess.DEVNULL, stdout=log_file, stderr=subprocess.STDOUT, env=_server_environ(),
-            start_new_session=True, cwd=str(path.parent),
-        )
     deadline = time.monotonic() + timeout
-    while not is_healthy(url, timeout=2.0):
-        if process.poll() is not None or time.monotonic() > deadline:
-            why = (f"exited with code {process.returncode}" if process.poll() is not None
-                   else f"did not answer /health within {timeout:.0f} s")
-            _stop_pid(process.pid)
-            raise RuntimeUnavailable(f"the btf server (prefect server start on {url}) {why}: {_log_tail(log)} "
-                                     f"(log: {log})")
-        time.sleep(0.3)
-    state = {"url": url, "pid": process.pid, "port": port, "host": LOOPBACK, "log": str(log),
-             "started": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}
-    _write_state(path, state)
-    return {**state, "state_file": str(path), "status": "running", "started_now": True}
+    url, server = status.get("url"), None
+    if status["status"] != "running":
+        port = free_port()
+        url = f"http://{LOOPBACK}:{port}/api"
+        server = _spawn([sys.executable, "-m", "prefect", "server", "start", "--host", LOOPBACK,
+                         "--port", str(port), "--analytics-off"], path.with_name("server.log"), path.parent)
+    cluster_path = cluster_state_file(path)
+    with contextlib.suppress(FileNotFoundError):
+        cluster_path.unlink()  # a stale one
+    cluster_log = path.with_name("cluster.log")
+    cluster = _spawn([sys.executable, "-m", CLUSTER_SERVICE, "--state", str(cluster_path), "--prefect-url", url,
+                      *(["--profile", profile] if profile else [])], cluster_log, Path(__file__).resolve().parents[1])
+    try:
+        if server is not None:
+            _wait_for(lambda: is_healthy(url, timeout=2.0), server, deadline,
+                      f"Prefect server (prefect server start on {url})", path.with_name("server.log"))
+            _write_state(path, {"url": url, "pid": server.pid, "port": int(url.rsplit(":", 1)[1].split("/")[0]),
+                                "host": LOOPBACK, "log": str(path.with_name("server.log")),
+                                "started": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")})
+        _wait_for(lambda: (_cluster_status(path) or {}).get("status") == "running", cluster, deadline,
+                  f"Dask cluster ({CLUSTER_SERVICE})", cluster_log)
+    except RuntimeUnavailable:
+        for process in (server, cluster):
+            if process is not None:
+                _stop_pid(process.pid)
+        if server is not None:
+            with contextlib.suppress(FileNotFoundError):
+                path.unlink()
+        raise
+    return {**server_status(path), "started_now": True}
 
 
 def _stop_pid(pid: int, grace: float = 10.0) -> None:
@@ -227,12 +321,19 @@ def _stop_pid(pid: int, grace: float = 10.0) -> None:
 
 
 def stop_server(path: Path | None = None) -> dict[str, Any]:
-    """Stop the ``btf server`` of the state file (by its process id) and remove the state file.
+    """Stop the ``btf server`` of the state files (its Prefect server and Dask cluster, by process id)
+    and remove the state files.
 
-    A state file whose process is not a Prefect server (gone, or its id reused) is removed without
+    A state file whose process is not the one it names (gone, or its id reused) is removed without
     signalling anything.
     """
     path = path or state_file()
+    cluster = _read_state(cluster_state_file(path))
+    if cluster is not None:
+        if _runs(cluster.get("pid"), CLUSTER_SERVICE.encode()):
+            _stop_pid(cluster["pid"], grace=40.0)  # it closes its workers first (flows.cluster_service)
+        with contextlib.suppress(FileNotFoundError):
+            cluster_state_file(path).unlink()
     state = _read_state(path)
     if state is None:
         return {"status": "stopped", "state_file": str(path), "stopped_now": False}
@@ -256,7 +357,7 @@ def add_server_arguments(p: argparse.ArgumentParser) -> None:
 def run_server(args: argparse.Namespace) -> int:
     """``btf server start|stop|status``: print the server's status as JSON; exit 0 (3 if it cannot start)."""
     if args.action == "start":
-        result = start_server(args.timeout)
+        result = start_server(args.timeout, profile=args.cluster)
     elif args.action == "stop":
         result = stop_server()
     else:

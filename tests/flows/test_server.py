@@ -17,7 +17,8 @@ from pathlib import Path
 
 import pytest
 
-from flows.server import is_alive, recorded_server_url, running_server, server_status, state_file, stop_server
+from flows.server import (cluster_state_file, is_alive, recorded_server_url, running_server, server_cluster,
+                          server_status, state_file, stop_server)
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -72,6 +73,8 @@ def _flow_runs_since(url: str, since: datetime.datetime) -> list[dict]:
 
 @pytest.mark.skipif(not Path("/proc").is_dir(), reason="checks the server's processes in /proc")
 def test_server_start_status_is_used_then_stop_leaves_no_process(state_home, tmp_path):
+    """One server for the whole story (a start costs seconds): start, status, a second start, a run with
+    another profile (the server's API, its own cluster), runs on the server's cluster, stop."""
     started = _btf(state_home, "server", "start", "--timeout", "90")
     assert started.returncode == 0, started.stderr
     server = json.loads(started.stdout)
@@ -100,10 +103,33 @@ def test_server_start_status_is_used_then_stop_leaves_no_process(state_home, tmp
     assert "Starting temporary server" not in run.stderr
     runs = [r for r in _flow_runs_since(server["url"], since) if str(out) in json.dumps(r.get("parameters"))]
     assert runs and all(r["state_type"] == "COMPLETED" for r in runs), runs
+    # ... and starts its own cluster, since its profile is not the one the server's cluster runs
+    assert "not using the btf server's Dask cluster" in run.stderr and "cluster section of the profile" in run.stderr
+
+    # with the server's profile, a command uses the server's Dask cluster, also with paths relative to
+    # a folder its workers do not run in, and writes what a cluster of its own writes
+    cluster = server["cluster"]
+    assert cluster["status"] == "running" and cluster["address"].startswith("tcp://127.0.0.1:")
+    capture = next(out.glob("*.zarr")).relative_to(tmp_path)
+    shared = subprocess.run([sys.executable, "-m", "flows.cli", "--no-progress", "ingest", str(capture), "--out",
+                             "shared.zarr"], cwd=tmp_path, env={**_environ(state_home), "PYTHONPATH": str(REPO)},
+                            capture_output=True, text=True, timeout=300)
+    assert shared.returncode == 0, shared.stderr
+    assert f"Dask cluster {cluster['address']} (the btf server's) ready" in shared.stderr
+    own = _btf(state_home, "--cluster", str(profile), "--no-progress", "ingest", str(tmp_path / capture),
+               "--out", str(tmp_path / "own.zarr"))
+    assert own.returncode == 0, own.stderr
+    assert "(the btf server's)" not in own.stderr
+    chunks = [p.relative_to(tmp_path / "own.zarr") for p in (tmp_path / "own.zarr").rglob("*")
+              if p.is_file() and "c" in p.relative_to(tmp_path / "own.zarr").parts]
+    assert chunks and all((tmp_path / "shared.zarr" / c).read_bytes() == (tmp_path / "own.zarr" / c).read_bytes()
+                          for c in chunks)
 
     stopped = _btf(state_home, "server", "stop")
     assert stopped.returncode == 0 and json.loads(stopped.stdout)["stopped_now"] is True
     assert not is_alive(state["pid"]) and _group_members(state["pid"]) == []
+    assert not is_alive(cluster["pid"]) and _group_members(cluster["pid"]) == []
+    assert not Path(cluster["state_file"]).exists()
     assert not Path(server["state_file"]).exists() and recorded_server_url() is None
     assert json.loads(_btf(state_home, "server", "status").stdout)["status"] == "stopped"
 
@@ -123,6 +149,20 @@ def test_a_stale_state_file_is_ignored_and_said_so(state_home, capsys):
     assert running_server() is None
     assert "ignoring" in capsys.readouterr().err
     assert stop_server()["stopped_now"] is False and not path.exists()  # removed, nothing killed
+
+
+def test_a_stale_cluster_state_file_is_ignored_and_said_so(state_home, capsys):
+    path = cluster_state_file()
+    path.parent.mkdir(parents=True)
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    path.write_text(json.dumps({"address": "tcp://127.0.0.1:9", "pid": dead.pid, "settings": {}}))
+    assert server_cluster({"cluster": {}}) is None
+    line = capsys.readouterr().err
+    assert line.count("\n") == 1 and "ignoring the btf server's Dask cluster" in line and "not running" in line
+    assert server_status()["cluster"]["status"] == "stale"
+    stop_server()
+    assert not path.exists()
 
 
 @pytest.mark.skipif(shutil.which("script") is None, reason="needs util-linux `script` for a terminal")
