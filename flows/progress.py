@@ -8,7 +8,9 @@ timestamped line when the stage starts, about every 10 % of it and when it ends:
 
     2026-12-03 09:12:04 ingest: 40/96 views (42 %), 12.3 s
 
-``btf --no-progress`` (or ``--quiet``) shows neither (docs/architecture.md, "Execution").
+``btf --no-progress`` (or ``--quiet``) shows neither. Within a Prefect run the lines also go to the
+run's log (:func:`run_log`), which a lasting Prefect server keeps and its UI shows
+(docs/architecture.md, "Execution").
 """
 
 from __future__ import annotations
@@ -38,9 +40,38 @@ def on_terminal() -> bool:
         return False
 
 
-def say(message: str) -> None:
-    """Print one info line on stderr, timestamped outside a terminal (a job log says when it happened)."""
-    print(message if on_terminal() else f"{_timestamp()} {message}", file=sys.stderr, flush=True)
+def say(message: str, show: bool = True) -> None:
+    """Print one info line on stderr (unless not ``show``), timestamped outside a terminal (a job log says
+    when it happened); within a Prefect run, also send it to that run's log (:func:`run_log`)."""
+    if show:
+        print(message if on_terminal() else f"{_timestamp()} {message}", file=sys.stderr, flush=True)
+    run_log(message)
+
+
+#: The logger of :func:`run_log`: its one handler sends records to the Prefect API, nothing to stderr.
+RUN_LOGGER = "btf.progress"
+
+
+def run_log(message: str) -> None:
+    """Send ``message`` at INFO to the log of the Prefect flow or task run this thread is in, where there
+    is one: the UI's page of the run shows it. Prefect's handler sends it only when logging to the API
+    is on, which :func:`flows.runtime.temporary_settings_of_run` turns on for a lasting server."""
+    if "prefect" not in sys.modules:  # no run without Prefect; `btf --help` does not import it
+        return
+    import logging
+
+    from prefect.context import FlowRunContext, TaskRunContext
+
+    if FlowRunContext.get() is None and TaskRunContext.get() is None:
+        return
+    logger = logging.getLogger(RUN_LOGGER)
+    if not logger.handlers:
+        from prefect.logging.handlers import APILogHandler
+
+        logger.addHandler(APILogHandler())
+        logger.setLevel(logging.INFO)
+        logger.propagate = False
+    logger.info(message)
 
 
 def _timestamp() -> str:
@@ -58,16 +89,16 @@ class _Lines:
     counting the tenths again at each one.
     """
 
-    def __init__(self, desc: str, unit: str):
-        self.desc, self.unit = desc, unit
+    def __init__(self, desc: str, unit: str, show: bool = True):
+        self.desc, self.unit, self.show = desc, unit, show
         self.start = time.perf_counter()
         self.done, self.total, self.step = 0, 0, 0
-        say(f"{desc}: started")
+        say(f"{desc}: started", show)
 
     def _line(self, suffix: str = "") -> None:
         share = f" ({100 * self.done // self.total} %)" if self.total else ""
         say(f"{self.desc}: {self.done}/{self.total} {_plural(self.unit, self.total)}{share}, "
-            f"{time.perf_counter() - self.start:.1f} s{suffix}")
+            f"{time.perf_counter() - self.start:.1f} s{suffix}", self.show)
 
     def update(self, done: int, total: int) -> None:
         if done < self.done or total != self.total:  # the next run of this stage
@@ -108,19 +139,41 @@ def progress_bar(desc: str, enabled: bool, unit: str = "task") -> tuple[Any, Pro
     update : callable
         ``update(done, total)``: ``done`` of ``total`` units finished.
     """
-    if enabled and not on_terminal():
-        lines = _Lines(desc, unit)
+    lines = _Lines(desc, unit, show=enabled and not on_terminal())  # also the Prefect run's log lines
+    if not enabled or not on_terminal():
         return lines, lines.update
     from tqdm.auto import tqdm
 
-    bar = tqdm(total=0, desc=desc, unit=unit, disable=not enabled, leave=True)
+    bar = tqdm(total=0, desc=desc, unit=unit, leave=True)
 
     def update(done: int, total: int) -> None:
         bar.total = total
         bar.n = done
         bar.refresh()
+        lines.update(done, total)
 
-    return bar, update
+    return _Closing(bar, lines), update
+
+
+class _Closing:
+    """Closes several displays of one stage (a terminal's bar and the run log's lines) together; reads
+    as the first (the bar: ``unit``, ``n``, ``total``)."""
+
+    def __init__(self, *displays: Any):
+        self.displays = displays
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.displays[0], name)
+
+    def close(self) -> None:
+        for display in self.displays:
+            display.close()
+
+    def __enter__(self) -> _Closing:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
 
 @contextlib.contextmanager

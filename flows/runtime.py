@@ -286,7 +286,7 @@ def _dashboard_address(spec: dict[str, Any]) -> str:
 RUN_LOGGERS = ("prefect.flow_runs", "prefect.task_runs")
 
 #: Set by ``quiet_logs`` when it chose ``PREFECT_LOGGING_LEVEL`` itself (the user did not).
-_QUIET = {"prefect": False}
+_QUIET = {"prefect": False, "to_api": False}
 
 
 #: Prefect log levels at which a failed run's tracebacks are shown (the user asked for detail).
@@ -346,7 +346,9 @@ def _quiet_before_prefect() -> None:
     if "PREFECT_LOGGING_LEVEL" not in os.environ:
         os.environ["PREFECT_LOGGING_LEVEL"] = "WARNING"
         _QUIET["prefect"] = True
-    os.environ.setdefault("PREFECT_LOGGING_TO_API_ENABLED", "false")
+    if "PREFECT_LOGGING_TO_API_ENABLED" not in os.environ:  # on for a lasting API: temporary_settings_of_run
+        os.environ["PREFECT_LOGGING_TO_API_ENABLED"] = "false"
+        _QUIET["to_api"] = True
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
     # the client's first-run telemetry notice: printed by `import prefect` in a terminal (this process or
     # a temporary server's, which inherits the terminal) unless DO_NOT_TRACK is set
@@ -392,8 +394,9 @@ def _check_health(api_url: str, timeout: float) -> None:
 
 
 @contextlib.contextmanager
-def _starting_prefect_api(profile: Profile) -> Iterator[tuple[str, Callable[[], str]]]:
-    """``(url, ready)`` of the run's Prefect API, its URL known before it answers.
+def _starting_prefect_api(profile: Profile) -> Iterator[tuple[str, Callable[[], str], bool]]:
+    """``(url, ready, lasting)`` of the run's Prefect API, its URL known before it answers; ``lasting``
+    is False for a temporary server, which stops with the run.
 
     The API is, in this order: ``PREFECT_API_URL`` or the profile's ``prefect.api_url``; else a
     running ``btf server`` (:func:`flows.server.running_server`; a stale state file is ignored with
@@ -409,11 +412,11 @@ def _starting_prefect_api(profile: Profile) -> Iterator[tuple[str, Callable[[], 
             _check_health(url, timeout)
             return url
 
-        yield url, configured
+        yield url, configured, True
         return
     url = running_server()
     if url:
-        yield url, lambda: url
+        yield url, lambda: url, True
         return
 
     from flows.server import free_port
@@ -439,7 +442,7 @@ def _starting_prefect_api(profile: Profile) -> Iterator[tuple[str, Callable[[], 
     pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="btf-prefect-server")
     started = pool.submit(start)
     try:
-        yield f"http://{LOOPBACK}:{port}/api", started.result
+        yield f"http://{LOOPBACK}:{port}/api", started.result, False
     finally:
         with contextlib.suppress(Exception):  # its error, if any, was raised by ready() already
             started.result()
@@ -459,9 +462,9 @@ def prefect_api(profile: Profile) -> Iterator[str]:
         When the configured server does not answer or the temporary one does not
         start within ``prefect.startup_timeout_s``; never hangs.
     """
-    with _starting_prefect_api(profile) as (_url, ready):
+    with _starting_prefect_api(profile) as (_url, ready, lasting):
         url = ready()
-        with temporary_settings_of_run(url):
+        with temporary_settings_of_run(url, lasting):
             yield url
 
 
@@ -675,10 +678,10 @@ def runtime(profile: Profile | str | os.PathLike | None = None) -> Iterator[tupl
     # what did start is stopped
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="btf-import-prefect") as pool:
         quieted = pool.submit(quiet_logs)
-        with _starting_prefect_api(profile) as (url, ready), dask_client(profile, url) as client:
+        with _starting_prefect_api(profile) as (url, ready, lasting), dask_client(profile, url) as client:
             quieted.result()
             url = ready()
-            with temporary_settings_of_run(url):
+            with temporary_settings_of_run(url, lasting):
                 yield profile, url, client
 
 
@@ -690,11 +693,18 @@ def runtime(profile: Profile | str | os.PathLike | None = None) -> Iterator[tupl
 HEARTBEAT_ENV = "PREFECT_FLOWS_HEARTBEAT_FREQUENCY"
 
 
-def temporary_settings_of_run(api_url: str) -> contextlib.AbstractContextManager:
-    """Prefect settings of one run: its API, and no flow-run heartbeats unless ``HEARTBEAT_ENV`` is set."""
-    from prefect.settings import PREFECT_API_URL, PREFECT_FLOWS_HEARTBEAT_FREQUENCY, temporary_settings
+def temporary_settings_of_run(api_url: str, lasting: bool) -> contextlib.AbstractContextManager:
+    """Prefect settings of one run: its API; no flow-run heartbeats unless ``HEARTBEAT_ENV`` is set; and,
+    for a ``lasting`` API (a ``btf server`` or one the user named), logs sent to it (the UI's page of
+    each run shows them: Prefect's warnings and the stages' progress lines, :func:`flows.progress.say`)
+    unless the user set ``PREFECT_LOGGING_TO_API_ENABLED``. A temporary server is stopped at the end of
+    the run, so nobody reads its logs."""
+    from prefect.settings import (PREFECT_API_URL, PREFECT_FLOWS_HEARTBEAT_FREQUENCY, PREFECT_LOGGING_TO_API_ENABLED,
+                                  temporary_settings)
 
     updates: dict[Any, Any] = {PREFECT_API_URL: api_url}
+    if lasting and _QUIET["to_api"]:
+        updates[PREFECT_LOGGING_TO_API_ENABLED] = True
     if HEARTBEAT_ENV not in os.environ and "PREFECT_RUNNER_HEARTBEAT_FREQUENCY" not in os.environ:
         updates[PREFECT_FLOWS_HEARTBEAT_FREQUENCY] = None
     return temporary_settings(updates)

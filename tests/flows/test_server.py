@@ -9,10 +9,12 @@ from __future__ import annotations
 import datetime
 import json
 import os
+import re
 import shlex
 import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -71,6 +73,19 @@ def _flow_runs_since(url: str, since: datetime.datetime) -> list[dict]:
     return response.json()
 
 
+def _logs_of(url: str, flow_run_id: str) -> list[dict]:
+    import httpx
+
+    body = {"logs": {"flow_run_id": {"any_": [flow_run_id]}}, "limit": 200}
+    for _ in range(20):  # the client sends its logs in batches: the last ones may land after the run ends
+        response = httpx.post(f"{url}/logs/filter", json=body, timeout=10)
+        response.raise_for_status()
+        if any("done" in log["message"] for log in response.json()):
+            break
+        time.sleep(0.5)
+    return response.json()
+
+
 @pytest.mark.skipif(not Path("/proc").is_dir(), reason="checks the server's processes in /proc")
 def test_server_start_status_is_used_then_stop_leaves_no_process(state_home, tmp_path):
     """One server for the whole story (a start costs seconds): start, status, a second start, a run with
@@ -115,7 +130,13 @@ def test_server_start_status_is_used_then_stop_leaves_no_process(state_home, tmp
                              "shared.zarr"], cwd=tmp_path, env={**_environ(state_home), "PYTHONPATH": str(REPO)},
                             capture_output=True, text=True, timeout=300)
     assert shared.returncode == 0, shared.stderr
-    assert f"Dask cluster {cluster['address']} (the btf server's) ready" in shared.stderr
+    assert f"Dask cluster {cluster['address']} (the btf server's) ready" in shared.stderr, shared.stderr
+    # its progress lines reached the run's log on the server (the UI shows them), also with --no-progress
+    ingest_runs = [r for r in _flow_runs_since(server["url"], since) if "shared.zarr" in json.dumps(r["parameters"])]
+    assert len(ingest_runs) == 1, ingest_runs
+    messages = [log["message"] for log in _logs_of(server["url"], ingest_runs[0]["id"])]
+    assert any(m.startswith("ingest: started") for m in messages), messages
+    assert any(re.fullmatch(r"ingest: 4/4 views \(100 %\), [\d.]+ s, done", m) for m in messages), messages
     own = _btf(state_home, "--cluster", str(profile), "--no-progress", "ingest", str(tmp_path / capture),
                "--out", str(tmp_path / "own.zarr"))
     assert own.returncode == 0, own.stderr
