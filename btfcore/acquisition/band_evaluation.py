@@ -19,7 +19,12 @@ noise-free truth BTF ``(n_lv, rows, w, 3)`` (linear RGB, rows
   per-texture errors of mRMSE, mPSNR and mRE (SR paper eqs. 8-10) per band
   (:func:`score_band`), reduced over bands and finished by
   :func:`finish_scores` to the values :mod:`btfcore.metrics` gives on the
-  whole BTF.
+  whole BTF;
+* **flags**: whether a strategy's result on one material has diverged
+  (:func:`divergence`, left out of the means) or its operator is
+  ill-conditioned (:func:`conditioning`, shown with the reason), the one
+  definition the claims, tables and report use (docs/evaluation.md,
+  "Diverged and ill-conditioned results").
 """
 
 from __future__ import annotations
@@ -35,8 +40,9 @@ from btfcore.acquisition.strategies import Geometry, Strategy
 from btfcore.capture.demultiplex import demultiplex_operator
 from btfcore.model.colour import LOG_YUV_EPS, from_log_yuv, log_luminance, to_log_yuv
 
-__all__ = ["CHROMA_MAX", "LOG_Y_MAX", "BandScores", "BandTruth", "combine_moments", "demultiplex_views",
-           "demultiplexed_moments", "finish_scores", "image_maxima", "measure_band", "moments_variance",
+__all__ = ["CHROMA_MAX", "DIVERGED_MRE_PERCENT", "DIVERGED_REL_L2_LOG_Y", "ILL_CONDITIONED", "LOG_Y_MAX",
+           "BandScores", "BandTruth", "combine_moments", "conditioning", "demultiplex_views",
+           "demultiplexed_moments", "divergence", "finish_scores", "image_maxima", "measure_band", "moments_variance",
            "noisy_multiplexed", "noisy_rows", "noisy_single", "reconstruct_band", "score_band"]
 
 #: Range a log-space reconstruction is clipped to before it is mapped back to RGB: log Y in
@@ -289,3 +295,73 @@ def finish_scores(s: BandScores, row_max: np.ndarray) -> dict[str, float]:
         psnr = 20 * np.log10(row_max / rmse)                                 # eq. (9) term
     return {"rel_l2_log_y": float(np.sqrt(s.sse_log_y / s.ss_log_y)), "mrmse": float(np.mean(rmse)),
             "mpsnr": float(np.mean(psnr)), "mre": float(np.mean(np.sqrt(s.sse_rows / s.ss_rows)) * 100)}
+
+
+# --------------------------------------------------------------------------- flags
+
+
+#: A result has diverged when its mRE (SR paper eq. 10) exceeds this, per cent: the reconstruction's
+#: per-texture error is 100 times the truth's norm (a log-space solve that extrapolated to exp overflow
+#: gives 1e8 - 1e12 %; the worst genuine results, plain demultiplexing of dark metal, about 1e3 %).
+DIVERGED_MRE_PERCENT = 1e4
+#: ... or when its relative L2 error of log Y (paper 1 §4.1.1) exceeds this: worse than predicting log Y = 0.
+DIVERGED_REL_L2_LOG_Y = 1.0
+#: An operator is ill-conditioned when the condition number of its (sampled, regularised) basis rows
+#: exceeds this: noise is amplified up to this factor.
+ILL_CONDITIONED = 1e6
+
+
+def _condition(info: dict) -> float | None:
+    """The condition number a strategy reports (``kappa_log_y`` of the log Y operator, else ``condition``)."""
+    value = info.get("kappa_log_y", info.get("condition"))
+    return None if value is None else float(value)
+
+
+def divergence(scores: dict[str, float], info: dict | None = None) -> str | None:
+    """Why one strategy's result on one material has diverged, or None when it has not.
+
+    Diverged: a score that is not finite, mRE above :data:`DIVERGED_MRE_PERCENT` or a
+    relative L2 error of log Y above :data:`DIVERGED_REL_L2_LOG_Y`. The reason names the
+    offending scores and, from ``info`` (the strategy's report), the condition number of its
+    operator and its samples against its basis vectors.
+
+    Parameters
+    ----------
+    scores : dict
+        :func:`finish_scores` (``rel_l2_log_y`` a fraction, ``mpsnr`` dB, ``mre`` %).
+    info : dict, optional
+        The strategy's ``info`` (``k``, ``n_meas``, ``condition`` or ``kappa_log_y``).
+    """
+    bad = [f"{name} is not finite" for name, v in scores.items() if not np.isfinite(v)]
+    if np.isfinite(scores.get("mre", 0.0)) and scores.get("mre", 0.0) > DIVERGED_MRE_PERCENT:
+        bad.append(f"mRE {scores['mre']:.3g} % > {DIVERGED_MRE_PERCENT:,.0f} %")
+    rel = scores.get("rel_l2_log_y", 0.0)
+    if np.isfinite(rel) and rel > DIVERGED_REL_L2_LOG_Y:
+        bad.append(f"log Y relative L2 {100 * rel:.3g} % > {100 * DIVERGED_REL_L2_LOG_Y:.0f} %")
+    if not bad:
+        return None
+    context = _operator_text(info or {})
+    return "diverged: " + "; ".join(bad) + (f" ({context})" if context else "")
+
+
+def conditioning(info: dict | None) -> str | None:
+    """Why a strategy's operator is ill-conditioned (condition number above :data:`ILL_CONDITIONED`,
+    or fewer samples than basis vectors), or None."""
+    info = info or {}
+    cond, k, n = _condition(info), info.get("k"), info.get("n_meas")
+    bad = []
+    if cond is not None and (not np.isfinite(cond) or cond > ILL_CONDITIONED):
+        bad.append(f"condition number {cond:.3g} > {ILL_CONDITIONED:.0e}")
+    if k is not None and n is not None and int(n) < int(k):
+        bad.append(f"{int(n)} samples below the basis rank {int(k)}")
+    return ("ill-conditioned: " + "; ".join(bad)) if bad else None
+
+
+def _operator_text(info: dict) -> str:
+    cond, k, n = _condition(info), info.get("k"), info.get("n_meas")
+    parts = []
+    if cond is not None:
+        parts.append(f"condition number of the sampled basis rows {cond:.3g}")
+    if k is not None and n is not None:
+        parts.append(f"{int(k)} basis vectors from {int(n)} samples")
+    return ", ".join(parts)

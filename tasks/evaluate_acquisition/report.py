@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import os
 from collections.abc import Sequence
 from pathlib import Path
@@ -11,10 +10,13 @@ from typing import Any
 import numpy as np
 import zarr
 
+from btfcore.acquisition.band_evaluation import DIVERGED_MRE_PERCENT, DIVERGED_REL_L2_LOG_Y, ILL_CONDITIONED
 from btfcore.acquisition.hadamard import multiplexing_patterns
 from btfcore.acquisition.strategies import THESIS_N_S, THESIS_PAIRS, Geometry, scaled_pairs
 from tasks.compute import wait_all
+from tasks.evaluate_acquisition.claims import result_flags, thesis_tables
 from tasks.evaluate_acquisition.config import EvaluationConfig
+from tasks.html_report import MIN_IMAGE_PX, Cell, Row, Table, format_number, write_html
 from tasks.model import Material
 
 
@@ -104,43 +106,149 @@ def scale_of(materials: Sequence[Material], geometry: Geometry, config: Evaluati
             "note": f"thesis: 26,136 pairs (12 turntable positions); n_s scaled by {n_pairs}/{THESIS_PAIRS}"}
 
 
-def write_acquisition_report(out_dir: str | os.PathLike, summary: dict[str, Any]) -> dict[str, str]:
-    """``report.json`` (everything) and ``report.html`` (claims, tables, renderings, ABRDFs) in ``out_dir``."""
-    from tasks.report import reused_text, write_html, write_json
+#: The demo's other reports, relative to the acquisition folder: (href, label).
+RELATED_REPORTS = (("../report.html", "demo report (btf demo)"), ("../model/report.html", "model database (build-db)"))
 
-    out = Path(out_dir)
-    write_json(out / "report.json", summary)
+
+def related_reports(out: Path) -> list[tuple[str, str]]:
+    """Back-links to the demo's other reports that exist; the demo's own report also while a demo writes it
+    (its report comes after this one, and its ``database`` folder marks the demo's output)."""
+    demo = (out.parent / "database").is_dir() and (out.parent / "model").is_dir()
+    return [(href, label) for href, label in RELATED_REPORTS
+            if (out / href).is_file() or (href == "../report.html" and demo)]
+
+
+def scale_text(scale: dict[str, Any]) -> str:
+    """What the evaluation ran on, as one sentence (:func:`scale_of`)."""
+    classes = ", ".join(f"{c} ({n})" for c, n in scale["materials_per_class"].items())
+    n_s = ", ".join(f"{n} -> {m}" for n, m in scale["thesis_n_s_scaled"].items())
+    return (f"{scale['device']}: {scale['turntable_positions']} turntable position(s) x {scale['cameras']} cameras "
+            f"x {scale['leds']:,} LEDs = {scale['light_view_pairs']:,} light/view pairs, "
+            f"{scale['texture'][0]} x {scale['texture'][1]} texels; {scale['materials']} materials: {classes}; "
+            f"{scale['light_turntable_pairs']:,} (light, turntable) pairs, S-matrix order {scale['s_matrix_order']}; "
+            f"the thesis' sample counts n_s scaled {n_s} (sparse + multiplexed: "
+            f"{scale['sparse_multiplexed_n_s']}); {scale['note']}.")
+
+
+def _figure_flag(mid: str, name: str, psnr: float | None, flags: dict[str, Any]) -> str | None:
+    """Why a rendering or ABRDF image of ``name`` on ``mid`` is flagged: its result diverged or is
+    ill-conditioned, or its rendering is worse than black (PSNR below 0 dB)."""
+    reason = flags["diverged"].get(mid, {}).get(name) or flags["ill_conditioned"].get(mid, {}).get(name)
+    if psnr is not None and not psnr >= 0:
+        worse = f"rendering PSNR {psnr:.4g} dB < 0 dB: its error exceeds the truth's brightest value"
+        reason = f"{reason}; {worse}" if reason else worse
+    return reason
+
+
+def _excluded_text(claim: dict[str, Any]) -> str:
+    """The diverged results a claim's means leave out, as a sentence ('' when none)."""
+    excluded = claim.get("excluded") or {}
+    if not excluded:
+        return ""
+    groups = "; ".join(f"{group}: " + ", ".join(f"{name} {n}" for name, n in row.items())
+                       for group, row in excluded.items())
+    return (f"Diverged results left out of its means ({groups}); a mean whose results all diverged is over "
+            "them, flagged in its table.")
+
+
+def _claim_sections(claims: dict[str, Any]) -> list[dict[str, Any]]:
+    overview = [["claim", "the thesis claims", "measured here", "rule", "verdict"]] + [
+        [f"({k})", c["claim"], Cell(c.get("measured", ""), flag=_excluded_text(c) or None), c["rule"], c["verdict"]]
+        for k, c in claims.items()]
     sections = [{"title": "Claims of the thesis",
-                 "text": "Each verdict is computed from the numbers beside it (docs/evaluation.md).",
-                 "table": [["claim", "verdict", "rule", "numbers"]] + [
-                     [f"({k}) {c['claim']}", c["verdict"], c["rule"], json.dumps(c["numbers"])]
-                     for k, c in summary["claims"].items()]},
-                {"title": "Paper 1, Table 2: log Y relative L2 reconstruction errors per class [%]",
-                 "table": summary["tables"]["paper1_table2"]},
-                {"title": "VMV Table 1: log Y relative errors [%], demultiplexed and de-noised",
-                 "table": summary["tables"]["vmv_table1"]},
-                {"title": "Every strategy, means over all held-out materials",
-                 "table": summary["tables"]["all_strategies"]},
-                {"title": "Predicted acquisition times [s] (btfcore.acquisition.time_model)",
-                 "table": [["strategy", "evaluated device [s]", "thesis device [h]"]] + [
-                     [k, round(v, 1), round(summary["times"]["thesis_device_s"][k] / 3600, 3)]
-                     for k, v in summary["times"]["evaluated_device_s"].items()]}]
+                 "text": ["Each verdict is computed by its rule from the numbers measured here, never written by "
+                          "hand (docs/evaluation.md, \"Claims and measured numbers\"). Errors are relative L2 "
+                          "errors of log Y in per cent (paper 1 §4.1.1).",
+                          "Means leave diverged results out (docs/evaluation.md, \"Diverged and ill-conditioned "
+                          "results\"); a mean that does is flagged in red with how many it left out."],
+                 "table": overview}]
+    for k, c in claims.items():
+        sections.append({"title": f"Claim ({k}): {c['verdict']}",
+                         "text": [f"The thesis claims: {c['claim']}.", f"Measured: {c.get('measured', '')}.",
+                                  f"Rule: {c['rule']}; verdict: {c['verdict']}.", _excluded_text(c)],
+                         "tables": [Table(t["rows"], t.get("caption", "")) for t in c.get("tables", [])]})
+    return sections
+
+
+def _flagged_rows(rows: list[list[Any]]) -> list[Any]:
+    """The flagged-results table for HTML: each row flagged by its kind (the reason, its last column, says why)."""
+    header, *body = rows
+    return [header] + [Row(r, flag=r[-1].split(":")[0] + " (definition above; the reason in the last column)")
+                       for r in body]
+
+
+def _figure_sections(summary: dict[str, Any], flags: dict[str, Any]) -> list[dict[str, Any]]:
+    size = summary["config"].get("render_size")
+    sections = []
     for mid, fig in summary["figures"].items():
         for light, images in fig["renderings"]["images"].items():
             psnrs = fig["renderings"]["psnr_db"][light]
-            sections.append({"title": f"{mid}: renderings on a sphere ({light} light), PSNR against the truth",
-                             "figures": [{"file": f"figures/{mid}/{f}",
-                                          "caption": name if name == "truth" else f"{name}: {psnrs[name]} dB"}
-                                         for name, f in images.items()]})
+            sections.append({
+                "title": f"{mid}: renderings on a sphere ({light} light), PSNR against the truth's rendering",
+                "text": f"Rendered at {size} x {size} px and shown enlarged by whole pixels (pixelated) to at "
+                        f"least {MIN_IMAGE_PX} px; click an image for the file itself. Captions in red: the "
+                        "reconstruction diverged or is ill-conditioned, with the reason.",
+                "figures": [{"file": f"figures/{mid}/{f}",
+                             "caption": name if name == "truth" else f"{name}: {format_number(psnrs[name])} dB",
+                             "flag": None if name == "truth" else _figure_flag(mid, name, psnrs[name], flags)}
+                            for name, f in images.items()]})
         sections.append({"title": f"{mid}: centre-texel ABRDF (rows: views, columns: LEDs)",
-                         "figures": [{"file": f"figures/{mid}/{f}", "caption": name}
+                         "text": "Tone-mapped with the truth's white point; click an image for the file itself.",
+                         "figures": [{"file": f"figures/{mid}/{f}", "caption": name,
+                                      "flag": None if name == "truth" else _figure_flag(mid, name, None, flags)}
                                      for name, f in fig["abrdf"].items()]})
-    scale = summary["scale"]
-    write_html(out / "report.html", "Acquisition evaluation (leave-one-out, simulated database)",
-               {"scale": f"{scale['device']}: {scale['turntable_positions']} turntable x {scale['cameras']} cameras x "
-                         f"{scale['leds']} LEDs = {scale['light_view_pairs']} light/view pairs, "
-                         f"{scale['texture'][0]}x{scale['texture'][1]} texels, {scale['materials']} materials",
-                **{f"claim ({k})": c["verdict"] for k, c in summary["claims"].items()},
-                "seconds": summary["seconds"],
-                "reused from an earlier run": reused_text(summary["reused"])}, sections)
+    return sections
+
+
+def write_acquisition_report(out_dir: str | os.PathLike, summary: dict[str, Any]) -> dict[str, str]:
+    """``report.json`` (everything) and ``report.html`` (claims, tables, flags, renderings, ABRDFs) in ``out_dir``.
+
+    ``summary`` is :func:`tasks.evaluate_acquisition.run.evaluate_acquisition`'s; the HTML's tables are
+    :func:`.claims.thesis_tables` with their flags (diverged and ill-conditioned results in red, with the
+    reason; means that leave diverged results out), the claims' own tables, and the figures.
+    """
+    from tasks.report import reused_text, write_json
+
+    out = Path(out_dir)
+    write_json(out / "report.json", summary)
+    result = {"materials": summary["materials"]}
+    flags = summary.get("flags") or result_flags(result)
+    tables = thesis_tables(result, flagged=True)
+    n_results = sum(len(rec["scores"]) for rec in summary["materials"].values())
+    n_diverged = sum(len(v) for v in flags["diverged"].values())
+    n_ill = sum(len(v) for v in flags["ill_conditioned"].values())
+    sections = _claim_sections(summary["claims"])
+    sections.append({
+        "title": "Diverged and ill-conditioned results",
+        "text": [f"{n_diverged} of {n_results} (material, strategy) results diverged and {n_ill} are "
+                 "ill-conditioned. Diverged: a score that is not finite, mRE above "
+                 f"{format_number(DIVERGED_MRE_PERCENT)} % or a log Y relative L2 error above "
+                 f"{format_number(100 * DIVERGED_REL_L2_LOG_Y)} %; every mean in this report leaves them out. "
+                 "Ill-conditioned: a condition number of the (sampled) basis rows above "
+                 f"{ILL_CONDITIONED:.0e}, or fewer samples than basis vectors; shown, kept in the means.",
+                 "The condition number is that of the strategy's solve operator (of its log Y operator for the "
+                 "paper 1 strategies)."],
+        "table": _flagged_rows(tables["flagged_results"]) if len(tables["flagged_results"]) > 1 else None})
+    sections += [{"title": "Paper 1, Table 2: log Y relative L2 reconstruction errors per class [%]",
+                  "table": tables["paper1_table2"]},
+                 {"title": "VMV Table 1: log Y relative errors [%], demultiplexed and de-noised",
+                  "table": tables["vmv_table1"]},
+                 {"title": "Every strategy, means over all held-out materials",
+                  "text": "mRMSE, mPSNR and mRE: SR paper eqs. (8)-(10) on linear RGB; mRMSE in the truth's "
+                          "linear units.",
+                  "table": tables["all_strategies"]},
+                 {"title": "Predicted acquisition times (btfcore.acquisition.time_model)",
+                  "table": [["strategy", "evaluated device [s]", "thesis device [h]"]] + [
+                      [k, round(v, 1), round(summary["times"]["thesis_device_s"][k] / 3600, 3)]
+                      for k, v in summary["times"]["evaluated_device_s"].items()]}]
+    sections += _figure_sections(summary, flags)
+    head = {"scale": scale_text(summary["scale"]),
+            **{f"claim ({k})": c["verdict"] for k, c in summary["claims"].items()},
+            "diverged results (left out of the means)": Cell(f"{n_diverged} of {n_results}",
+                                                             flag="see 'Diverged and ill-conditioned results'"
+                                                             if n_diverged else None),
+            "time [s]": summary["seconds"],
+            "reused from an earlier run": reused_text(summary["reused"])}
+    write_html(out / "report.html", "Acquisition evaluation (leave-one-out, simulated database)", head, sections,
+               related_reports(out))
     return {"report_json": str(out / "report.json"), "report_html": str(out / "report.html")}

@@ -7,16 +7,10 @@ import json
 import pytest
 
 
-def test_flow_writes_every_strategy_and_claim(tmp_path, runtime_session):
-    from flows.evaluate_acquisition import evaluate_acquisition_flow
-    from tasks.evaluate_acquisition import EvaluationConfig, strategy_names
+def test_flow_writes_every_strategy_and_claim(acquisition_evaluation):
+    from tasks.evaluate_acquisition import strategy_names
 
-    config = EvaluationConfig(device="tiny", n_turntable=None, texture_size=12, materials_per_class=2,
-                              classes=("carpet", "stone", "leather"), sampling_steps=200, als_iterations=3,
-                              band_rows=6, render_materials=1, render_size=32)
-    out = tmp_path / "out"
-    summary = evaluate_acquisition_flow(str(tmp_path / "db"), str(out), runtime_session[2].scheduler.address,
-                                        config, progress=False)
+    out, summary = acquisition_evaluation          # the tiny evaluation (tests/flows/conftest.py), run once
     report = json.loads((out / "report.json").read_text())
     assert report["scale"]["light_view_pairs"] == 3 * 4 * 16
     assert set(report["claims"]) == {"a", "b", "c", "d", "e"}

@@ -6,6 +6,7 @@ from __future__ import annotations
 import pytest
 
 from tasks.evaluate_acquisition import claims, strategy_names
+from tasks.html_report import columns_without_unit
 
 #: Errors (rel. L2 log Y, fractions) where every claim holds.
 BASE = {"abrdf-pmap7": 0.50, "abrdf-optimized": 0.20, "abtf-pmap7": 0.15, "abtf-optimized": 0.14,
@@ -109,3 +110,47 @@ def test_claim_e_needs_tikhonov_below_pinv_at_the_smallest_count(tikhonov, verdi
     out = claims(_result(**_everywhere(**{"sparse-tikhonov-n100": tikhonov})), TIMES)
     assert out["e"]["verdict"] == verdict
     assert out["e"]["numbers"]["n_s=100"] == {"tikhonov": round(100 * tikhonov, 3), "pinv": 26.0}
+
+
+def test_divergence_and_conditioning_name_their_reason():
+    from btfcore.acquisition.band_evaluation import conditioning, divergence
+
+    good = {"rel_l2_log_y": 0.2, "mrmse": 0.1, "mpsnr": 20.0, "mre": 900.0}
+    info = {"k": 166, "n_meas": 222, "kappa_log_y": 9.2e4}
+    assert divergence(good, info) is None and conditioning(info) is None
+    reason = divergence({**good, "mre": 2.3e11, "mpsnr": 2.08}, info)
+    assert reason.startswith("diverged: mRE 2.3e+11 % > 10,000 %") and "condition number" in reason
+    assert "166 basis vectors from 222 samples" in reason
+    assert "log Y relative L2 170 % > 100 %" in divergence({**good, "rel_l2_log_y": 1.7})
+    assert "mpsnr is not finite" in divergence({**good, "mpsnr": float("nan")})
+    assert "condition number 2e+07 > 1e+06" in conditioning({"condition": 2e7})
+    assert "12 samples below the basis rank 32" in conditioning({"k": 32, "n_meas": 12})
+
+
+def test_means_leave_diverged_results_out_and_say_how_many():
+    from tasks.evaluate_acquisition import class_means, overall_means, thesis_tables
+    from tasks.evaluate_acquisition.claims import result_flags
+
+    result = _result()
+    bad = result["materials"]["000-carpet"]["scores"]["abrdf-pmap7"]
+    bad.update(rel_l2_log_y=0.9, mre=2.3e11)                        # diverged (mRE), its log Y error plausible
+    assert set(result_flags(result)["diverged"]) == {"000-carpet"}
+    assert class_means(result)["carpet"]["abrdf-pmap7"] == pytest.approx(0.50)     # the other carpet only
+    assert overall_means(result)["abrdf-pmap7"] == pytest.approx(0.50)
+    assert overall_means(result, "mre")["abrdf-pmap7"] == pytest.approx(10.0)
+    out = claims(result, TIMES)
+    assert out["a"]["excluded"] == {"carpet": {"abrdf-pmap7": "1 of 2"}} and out["b"]["excluded"]
+    assert out["b"]["numbers"]["abrdf"]["materials_where_optimized_wins"] == "6/6"
+    # every result of a group diverged: the mean is over them, and flagged so
+    result["materials"]["001-carpet"]["scores"]["abrdf-pmap7"].update(mre=1e12)
+    assert class_means(result)["carpet"]["abrdf-pmap7"] == pytest.approx(0.70)
+    tables = thesis_tables(result, flagged=True)
+    carpet = next(r for r in tables["paper1_table2"] if r[0] == "carpet")
+    assert carpet[2]["flag"].startswith("all 2 results diverged")
+    assert [r[:2] for r in tables["flagged_results"][1:]] == [["000-carpet", "abrdf-pmap7"],
+                                                              ["001-carpet", "abrdf-pmap7"]]
+    plain = thesis_tables(result)                                  # report.json: numbers, no flags
+    assert not any(isinstance(c, dict) for row in plain["paper1_table2"] for c in row)
+    # every numeric column names its unit or is a count
+    for rows in [t["rows"] for claim in out.values() for t in claim["tables"]] + list(tables.values()):
+        assert columns_without_unit(rows) == [], rows[0]
