@@ -11,8 +11,10 @@ processes):
 * ``overhead_s`` = wall - stage: imports, Prefect API, Dask cluster, flow bookkeeping, close.
 
 Cold runs use an empty state folder (``XDG_STATE_HOME``), so each starts a temporary Prefect server
-(in parallel with the cluster); warm runs use the folder of a ``btf server`` started once by this
-script (its start time is reported as ``server_start_s``) and stopped at the end. Cold and warm runs
+(in parallel with the cluster) and a Dask cluster; warm runs use the folder of a ``btf server``
+started once by this script (its start time is reported as ``server_start_s``) and stopped at the
+end: its Prefect server and its Dask cluster (``used_server_cluster`` counts the runs whose stderr
+says they ran on it). Cold and warm runs
 alternate, ``--repeats`` of each, against the machine's drifting load. With ``--before DIR`` (an
 export of an earlier revision, e.g. ``git archive HEAD | tar -x -C DIR``), the same ingest run from
 that tree is interleaved too (``before``: the serial start of that revision).
@@ -63,13 +65,14 @@ def _ingest(tree: Path, state_home: Path, capture: Path, out: Path) -> dict:
     done, wall = _btf(tree, state_home, "--no-progress", "ingest", str(capture), "--out", str(out))
     stage = json.loads(done.stdout)["stages"]["ingest"]["seconds"]
     return {"wall_s": round(wall, 2), "stage_s": round(stage, 3), "overhead_s": round(wall - stage, 2),
-            "load_1min": round(load, 2), **{name: done.stderr.count(text) for name, text in NOISE.items()}}
+            "load_1min": round(load, 2), "used_server_cluster": int("(the btf server's) ready" in done.stderr),
+            **{name: done.stderr.count(text) for name, text in NOISE.items()}}
 
 
 def _summary(runs: list[dict]) -> dict:
     return {"runs": runs, "median_overhead_s": round(statistics.median(r["overhead_s"] for r in runs), 2),
             "min_overhead_s": min(r["overhead_s"] for r in runs),
-            **{name: sum(r[name] for r in runs) for name in NOISE}}
+            **{name: sum(r[name] for r in runs) for name in (*NOISE, "used_server_cluster")}}
 
 
 def _machine() -> dict:
