@@ -127,8 +127,9 @@ def ingest_flow(capture: str, out: str, scheduler_address: str, overwrite: bool 
 
 @task(name="ingest-database", **RETRY_ONCE, cache_policy=NO_CACHE)
 def ingest_database_stage(stores: list[str], out_dir: str, scheduler_address: str,
-                          progress: bool, calibration=None) -> dict[str, dict[str, Any]]:
-    """Ingest every capture of a simulated database; errors against each one's truth."""
+                          progress: bool, calibration=None, name: str = "ingest") -> dict[str, dict[str, Any]]:
+    """Ingest every capture of a simulated database; errors against each one's truth (``name``: the
+    progress display's, e.g. ``"ingest: white standard"``)."""
     from pathlib import Path
 
     from distributed import Client
@@ -138,7 +139,7 @@ def ingest_database_stage(stores: list[str], out_dir: str, scheduler_address: st
     from tasks.stores import open_capture_store
 
     results = {}
-    bar, update = progress_bar("ingest", progress, unit="view")
+    bar, update = progress_bar(name, progress, unit="view")
     with bar, Client(scheduler_address, set_as_default=False) as client:
         for store in stores:
             out = str(Path(out_dir) / Path(store).name)

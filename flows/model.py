@@ -27,10 +27,12 @@ def build_stage(db: str, out: str, scheduler_address: str, settings: ModelSettin
 
 
 @task(name="model-report", cache_policy=NO_CACHE)
-def model_report_stage(out: str, summary: dict[str, Any], settings: ModelSettings) -> dict[str, Any]:
+def model_report_stage(out: str, summary: dict[str, Any], settings: ModelSettings,
+                       links: list[tuple[str, str]] | None = None) -> dict[str, Any]:
+    """The build's ``report.json`` and ``report.html``, linking ``links`` (default: the demo's reports that exist)."""
     from tasks.model_report import model_report
 
-    return model_report(out, summary, settings)
+    return model_report(out, summary, settings, links)
 
 
 @flow(name="btf-build-db", log_prints=False)

@@ -23,14 +23,30 @@ from tasks.simulate import SimulationConfig, simulate_database
 # Retrying the stage resumes it: finished views are skipped, pending ones re-run.
 @task(name="simulate-captures", retries=1, cache_policy=NO_CACHE)
 def simulate_stage(config: SimulationConfig, out_dir: str, scheduler_address: str, overwrite: bool,
-                   progress: bool) -> dict[str, Any]:
+                   progress: bool, name: str | None = None) -> dict[str, Any]:
+    """Simulate the captures of ``config`` (``name``: the progress display's, by default
+    ``"simulate DEVICE: N materials"``)."""
     from distributed import Client
 
-    bar, update = progress_bar(f"simulate {config.device}", progress, unit="view")
+    name = name or f"simulate {config.device}: {config.n_materials} material{'s' * (config.n_materials != 1)}"
+    bar, update = progress_bar(name, progress, unit="view")
     with bar, Client(scheduler_address, set_as_default=False) as client:
         result = simulate_database(config, out_dir, client, overwrite=overwrite, progress=update)
     return {"stores": result.stores, "views_rendered": result.views_done,
             "views_skipped": result.views_skipped, "seconds": round(result.seconds, 3)}
+
+
+@task(name="ingest-floors", cache_policy=NO_CACHE)
+def floors_stage(config: SimulationConfig, stores: list[str], record: str, scheduler_address: str,
+                 progress: bool) -> dict[str, Any]:
+    """The ingest errors' floors of the demo's single-LED captures (:func:`tasks.floors.ingest_floors`)."""
+    from distributed import Client
+
+    from tasks.floors import ingest_floors
+
+    bar, update = progress_bar("ingest floors: noise-free and full-RGB sensors", progress, unit="material")
+    with bar, Client(scheduler_address, set_as_default=False) as client:
+        return ingest_floors(config, stores, client, record, progress=update)
 
 
 @task(name="simulation-report", cache_policy=NO_CACHE)
@@ -61,14 +77,15 @@ def simulate_flow(config: SimulationConfig, out_dir: str, scheduler_address: str
 
 
 @task(name="demo-model-database", cache_policy=NO_CACHE)
-def model_database_stage(btf_dir: str, model_dir: str, scheduler_address: str, progress: bool
-                         ) -> tuple[dict[str, Any], dict[str, list[int]]]:
+def model_database_stage(btf_dir: str, model_dir: str, scheduler_address: str, progress: bool,
+                         evaluate_acquisition: bool = True) -> tuple[dict[str, Any], dict[str, list[int]]]:
     """The demo's model database (``btf build-db`` and its report) unless a finished one of the same key
     is there (:func:`tasks.evaluate_acquisition.reuse.model_database_key`): what the demo's report shows of
     it, and what was reused."""
     from flows.model import build_stage, model_report_stage
     from tasks.evaluate_acquisition.reuse import model_database_key, read_record, write_record
     from tasks.model import ModelSettings
+    from tasks.model_report import RELATED_REPORTS
 
     settings, record_path = ModelSettings(), Path(model_dir) / "demo.json"
     key = model_database_key(btf_dir, model_dir, settings)
@@ -76,7 +93,8 @@ def model_database_stage(btf_dir: str, model_dir: str, scheduler_address: str, p
     if record is not None:
         return record["model"], {"bases": [record["bases"]] * 2, "leave_one_out_table": [1, 1]}
     build = build_stage.fn(btf_dir, model_dir, scheduler_address, settings, None, progress)
-    model = model_report_stage.fn(model_dir, build, settings)
+    links = list(RELATED_REPORTS[:2 if evaluate_acquisition else 1])        # the reports the demo writes next
+    model = model_report_stage.fn(model_dir, build, settings, links)
     fitted = [how for fit in build["fits"] for how in fit["bases"].values()]
     record = write_record(record_path, model_database_key(btf_dir, model_dir, settings), {
         "model": {k: model[k] for k in ("ks", "table_1", "trends", "k")}, "bases": len(fitted)})
@@ -106,25 +124,35 @@ def demo_flow(out_dir: str, scheduler_address: str, seed: int = 0, n_materials: 
     stage = simulate_stage(config, str(out / "database"), scheduler_address, False, progress)
     stages = {"simulate": _said("simulate", _simulated(stage), progress)}
     white_config = SimulationConfig(device="tiny", n_materials=1, seed=seed, classes=("white-standard",))
-    white = simulate_stage(white_config, str(out / "white-standard"), scheduler_address, False, progress)
-    ingest_database_stage(white["stores"], str(out / "btf-white"), scheduler_address, progress)
+    white = simulate_stage(white_config, str(out / "white-standard"), scheduler_address, False, progress,
+                           name="simulate tiny: white standard")
+    stages["simulate white standard"] = _said("simulate white standard", _simulated(white), progress)
+    ingest_white = ingest_database_stage(white["stores"], str(out / "btf-white"), scheduler_address, progress,
+                                         name="ingest: white standard")
+    stages["ingest white standard"] = _said("ingest white standard", _ingested(ingest_white), progress)
     calibration = calibration_stage(str(out / "btf-white" / Path(white["stores"][0]).name), 0.99, None)
-    ingest = ingest_database_stage(stage["stores"], str(out / "btf"), scheduler_address, progress, calibration)
+    ingest = ingest_database_stage(stage["stores"], str(out / "btf"), scheduler_address, progress, calibration,
+                                   name=f"ingest: {n_materials} materials, calibrated")
     stages["ingest"] = _said("ingest", _ingested(ingest), progress)
+    floors = floors_stage(config, stage["stores"], str(out / "floors.json"), scheduler_address, progress)
+    stages["ingest floors"] = _said("ingest floors", {k: v for k, v in floors.items() if k != "floors"}, progress)
     n_classes = len(config.classes)
     mux_config = SimulationConfig(device="tiny", n_materials=min(n_materials, n_classes), seed=seed,
                                   illumination="multiplexed")
-    mux = simulate_stage(mux_config, str(out / "database-multiplexed"), scheduler_address, False, progress)
+    mux = simulate_stage(mux_config, str(out / "database-multiplexed"), scheduler_address, False, progress,
+                         name=f"simulate tiny: S-matrix, {mux_config.n_materials} materials")
     stages["simulate multiplexed"] = _said("simulate multiplexed", _simulated(mux), progress)
     ingest_mux = ingest_database_stage(mux["stores"], str(out / "btf-multiplexed"), scheduler_address, progress,
-                                       calibration)
+                                       calibration, name=f"ingest: S-matrix, {mux_config.n_materials} materials")
     stages["ingest multiplexed"] = _said("ingest multiplexed", _ingested(ingest_mux), progress)
     run = {"command": "demo", "config": config.to_json(), "out_dir": str(out.resolve()), "stages": stages,
            "radiometric": calibration.info, "ingest": ingest, "ingest_multiplexed": ingest_mux,
+           "ingest_floors": floors["floors"],
            "ingest_btf": {Path(store).stem: str(out / "btf" / Path(store).name) for store in stage["stores"]}}
     if n_materials >= 2 * n_classes:         # leave-one-out needs two materials per class
         start_model = time.perf_counter()
-        model, reused = model_database_stage(str(out / "btf"), str(out / "model"), scheduler_address, progress)
+        model, reused = model_database_stage(str(out / "btf"), str(out / "model"), scheduler_address, progress,
+                                             evaluate_acquisition)
         stages["build-db"] = _said("build-db", {"seconds": round(time.perf_counter() - start_model, 3),
                                                 "reused": reused}, progress)
         run["model"] = {"report_html": str(out / "model" / "report.html"), **model}

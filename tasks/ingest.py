@@ -81,11 +81,13 @@ __all__ = [
     "check_ingest",
     "commit_staged",
     "create_ingest_store",
+    "errors_against_truth",
     "ingest_capture",
     "ingest_hash",
     "ingest_view",
     "reused_buffer",
     "staging_path",
+    "view_chain_arguments",
 ]
 
 
@@ -235,7 +237,6 @@ def ingest_view(capture_path: str, meta: CaptureMetadata, out_path: str, setting
     ``meta`` is the capture's metadata as the driver validated it (:meth:`CaptureStore.reopen`).
     """
     capture = CaptureStore.reopen(capture_path, meta)
-    sensor = meta.sensor
     window = view_window(capture.homography[t, c], capture.roi_shape, tuple(meta.texture_shape),
                          meta.sample_size_m, settings)
     if capture.is_plan_capture and (capture.exposure_time[t, c] == 0).any():
@@ -245,16 +246,25 @@ def ingest_view(capture_path: str, meta: CaptureMetadata, out_path: str, setting
                 window[1].stop - window[1].start), capture.raw.dtype))
     textures, valid = process_view(
         raw, capture.exposure_time[t, c], capture.illumination,
-        bayer_pattern=meta.bayer_pattern, black_level=meta.black_level, white_level=meta.white_level,
-        homography=capture.homography[t, c], texture_shape=tuple(meta.texture_shape),
-        sample_size_m=meta.sample_size_m, dark_frames=capture.dark_frames[c],
-        dark_exposure_time=meta.dark_exposure_time, gain_e_per_dn=sensor.get("gain_e_per_dn"),
-        read_noise_e=sensor.get("read_noise_e"), settings=settings,
-        led_gain=None if calibration is None else calibration.led_gain,
-        colour_matrix=None if calibration is None else calibration.colour_matrix, window=window,
+        **view_chain_arguments(capture, t, c, window, settings, calibration),
         out=reused_buffer("rectified", (capture.n_illum, *meta.texture_shape, 3), np.float32))
     _write_view(out_path, capture, t, c, textures, valid)
     return t, c
+
+
+def view_chain_arguments(capture: CaptureStore, t: int, c: int, window: tuple, settings: IngestSettings,
+                         calibration: Calibration | None = None) -> dict[str, Any]:
+    """The keyword arguments of :func:`btfcore.capture.view_chain.process_view` for view ``(t, c)`` of
+    ``capture``: its sensor, geometry and dark frames, the settings and the calibration (also used by
+    the error floors of :mod:`tasks.floors`, which replace the frames and the dark frames)."""
+    meta, sensor = capture.meta, capture.meta.sensor
+    return dict(bayer_pattern=meta.bayer_pattern, black_level=meta.black_level, white_level=meta.white_level,
+                homography=capture.homography[t, c], texture_shape=tuple(meta.texture_shape),
+                sample_size_m=meta.sample_size_m, dark_frames=capture.dark_frames[c],
+                dark_exposure_time=meta.dark_exposure_time, gain_e_per_dn=sensor.get("gain_e_per_dn"),
+                read_noise_e=sensor.get("read_noise_e"), settings=settings,
+                led_gain=None if calibration is None else calibration.led_gain,
+                colour_matrix=None if calibration is None else calibration.colour_matrix, window=window)
 
 
 def _write_view(out_path: str, capture: CaptureStore, t: int, c: int, textures: np.ndarray,
@@ -355,13 +365,20 @@ def btf_error_against_truth(btf_path: str | os.PathLike,
         capture = open_capture_store(capture)
     btf = np.asarray(store.btf[...], dtype=np.float64)
     truth = np.asarray(capture.truth["btf"][...], dtype=np.float64)
-    n_leds = capture.n_leds
-    b = btf.reshape(-1, n_leds, *btf.shape[1:])
-    g = truth.reshape(b.shape)
+    return errors_against_truth(btf, truth, capture.n_leds,
+                                bool((store.attrs.get("radiometric") or {}).get("white_standard")))
+
+
+def errors_against_truth(btf: np.ndarray, truth: np.ndarray, n_leds: int, calibrated: bool = False
+                         ) -> dict[str, float]:
+    """The errors of :func:`btf_error_against_truth` on arrays: ``btf`` and ``truth`` ``(n_lv, h, w, 3)``,
+    rows over (turntable, camera, light) with ``n_leds`` lights; the ``calibrated_*`` ones with ``calibrated``."""
+    b = np.asarray(btf, dtype=np.float64).reshape(-1, n_leds, *btf.shape[1:])
+    g = np.asarray(truth, dtype=np.float64).reshape(b.shape)
     scale = (b * g).sum(axis=(0, 2, 3)) / np.maximum((b * b).sum(axis=(0, 2, 3)), 1e-300)   # (n_leds, 3)
     rel_linear, rel_log = _relative_errors(b * scale[None, :, None, None, :], g)
     errors = {"relative_l2_linear": rel_linear, "relative_l2_log_y": rel_log}
-    if (store.attrs.get("radiometric") or {}).get("white_standard"):
+    if calibrated:
         rel_linear, rel_log = _relative_errors(b, g)
         errors.update({"calibrated_relative_l2_linear": rel_linear, "calibrated_relative_l2_log_y": rel_log})
     return errors

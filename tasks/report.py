@@ -6,7 +6,6 @@ ground truth), so a report shows the data a later stage will read.
 
 from __future__ import annotations
 
-import html
 import json
 import math
 from pathlib import Path
@@ -15,11 +14,13 @@ from typing import Any, Sequence
 import cv2
 import numpy as np
 
+from btfcore.capture.view_chain import IngestSettings
 from btfcore.simulate.camera import homography_sample_mask
 from btfcore.dome import Device
 from btfcore.model.colour import REC709_LUMA
 from btfcore.simulate.sensor import WELL_EXPOSED
 from btfcore.render.tonemap import srgb_encode, tonemap
+from tasks.html_report import Cell, write_html
 from tasks.stores import CaptureStore, open_capture_store
 
 #: Rows of the ground truth read for statistics (a subsample keeps reports cheap
@@ -70,7 +71,13 @@ def _luminance(rgb: np.ndarray) -> np.ndarray:
 
 
 def material_statistics(store: CaptureStore) -> dict[str, Any]:
-    """Figures of one simulated store: dynamic range, exposures, saturation, exposure quality."""
+    """Figures of one simulated store: dynamic range, exposures, saturation, usable exposures per pixel.
+
+    A raw sample is *usable* when the HDR merge uses it (:func:`btfcore.capture.hdr.merge_linear`):
+    below the saturation threshold (``saturation_margin`` of the white level) and, black-subtracted,
+    above the noise floor (twice the read noise, at least 1 DN). Counted per frame of the bracket
+    before the merge, on the sample's pixels of up to 8 views x 4 illuminations spread over the capture.
+    """
     truth = store.group["truth"]["btf"]
     n_lv = truth.shape[0]
     rows = np.unique(np.linspace(0, n_lv - 1, min(n_lv, STAT_ROWS)).astype(int))
@@ -79,18 +86,24 @@ def material_statistics(store: CaptureStore) -> dict[str, Any]:
     positive = lum[lum > 0]
     times = np.asarray(store.group["exposure_time"][...])
     meta = store.meta
-    # Exposure quality of the real (noisy) frames of a few views: a sample pixel is
-    # well exposed when one frame has it inside the sensor's WELL_EXPOSED range.
     span = float(meta.white_level - meta.black_level)
-    well, saturated = [], []
+    saturated_at = IngestSettings().saturation_margin * meta.white_level
+    sensor = meta.sensor
+    noise_floor = max(2.0 * sensor.get("read_noise_e", 0.0) / sensor.get("gain_e_per_dn", 1.0), 1.0)
+    well, saturated, usable = [], [], []
     views = [(t, c) for t in range(store.n_turn) for c in range(store.n_cam)]
+    illuminations = np.unique(np.linspace(0, store.n_illum - 1, min(store.n_illum, 4)).astype(int))
     for t, c in views[:: max(1, len(views) // 8)]:  # up to ~8 views spread over the capture
-        frames, _ = store.read_bracket(t, c, 0)
-        level = (frames.astype(np.float64) - meta.black_level) / span
         mask = homography_sample_mask(store.homography[t, c], store.roi_shape, meta.sample_size_m)
-        good = ((level > WELL_EXPOSED[0]) & (level < WELL_EXPOSED[1])).any(axis=0)
-        well.append(float(good[mask].mean()))
-        saturated.append(float((frames[0] >= meta.white_level)[mask].mean()))
+        for i in illuminations:
+            frames, _ = store.read_bracket(t, c, int(i))
+            level = (frames.astype(np.float64) - meta.black_level) / span
+            good = ((level > WELL_EXPOSED[0]) & (level < WELL_EXPOSED[1])).any(axis=0)
+            if i == illuminations[0]:
+                well.append(float(good[mask].mean()))
+                saturated.append(float((frames[0] >= meta.white_level)[mask].mean()))
+            usable.append(((frames < saturated_at) & (frames - meta.black_level > noise_floor))[:, mask].sum(axis=0))
+    counts = np.concatenate(usable)                                  # usable exposures of each sample pixel
     return {
         "n_lv": int(n_lv),
         # brightest over darkest non-zero luminance of the (noise-free) truth
@@ -99,8 +112,13 @@ def material_statistics(store: CaptureStore) -> dict[str, Any]:
         "luminance_p0.1": float(p_lo),
         "luminance_p99.9": float(p_hi),
         "exposure_time_s": {"min": float(times.min()), "max": float(times.max())},
+        # any frame inside WELL_EXPOSED: 1.0 by construction of the bracket (kept for old readers)
         "well_exposed_fraction_min": float(min(well)),
         "saturated_in_shortest_fraction_max": float(max(saturated)),
+        "n_exposures": int(store.n_exp),
+        "usable_exposures_per_pixel_mean": float(counts.mean()),
+        "single_usable_exposure_fraction": float(np.mean(counts == 1)),
+        "no_usable_exposure_fraction": float(np.mean(counts == 0)),
     }
 
 
@@ -280,38 +298,6 @@ RELATED_REPORTS = (("model/report.html", "model database (build-db)"),
                    ("acquisition/report.html", "acquisition evaluation"))
 
 
-def write_html(path: Path, title: str, summary: dict[str, Any], sections: list[dict[str, Any]],
-               links: Sequence[tuple[str, str]] = ()) -> Path:
-    """A self-contained HTML page of figure sections (PNG files beside it), linking ``links`` ``(href, label)``."""
-    parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>",
-             "<style>body{font-family:sans-serif;max-width:1200px;margin:auto;padding:1em}"
-             "figure{display:inline-block;margin:6px;text-align:center;font-size:12px}"
-             "img{image-rendering:pixelated;border:1px solid #ccc}"
-             "table{border-collapse:collapse}td,th{border:1px solid #ccc;padding:3px 8px;font-size:13px}"
-             "</style></head><body>", f"<h1>{html.escape(title)}</h1>"]
-    if links:
-        parts.append("<p>See also: " + " | ".join(f"<a href='{html.escape(href)}'>{html.escape(label)}</a>"
-                                                  for href, label in links) + "</p>")
-    parts.append("<table>" + "".join(
-        f"<tr><th>{html.escape(str(k))}</th><td>{html.escape(json.dumps(v, default=_json_default) if not isinstance(v, str) else v)}</td></tr>"
-        for k, v in summary.items()) + "</table>")
-    for section in sections:
-        parts.append(f"<h2>{html.escape(section['title'])}</h2>")
-        if section.get("text"):
-            parts.append(f"<p>{html.escape(section['text'])}</p>")
-        if section.get("table"):
-            header, *rows = section["table"]
-            parts.append("<table><tr>" + "".join(f"<th>{html.escape(str(h))}</th>" for h in header) + "</tr>"
-                         + "".join("<tr>" + "".join(f"<td>{html.escape(str(v))}</td>" for v in row) + "</tr>"
-                                   for row in rows) + "</table>")
-        for fig in section.get("figures", []):
-            parts.append(f"<figure><img src='{html.escape(fig['file'])}'><figcaption>"
-                         f"{html.escape(fig.get('caption', ''))}</figcaption></figure>")
-    parts.append("</body></html>")
-    path.write_text("\n".join(parts))
-    return path
-
-
 def _capture_sections(device: Device, store_paths: Sequence[str], stores: Sequence[CaptureStore],
                       fig_dir: Path) -> list[dict[str, Any]]:
     """The report's figures of the simulated captures: the dome, raw frames, ground-truth textures, ABRDFs."""
@@ -352,15 +338,103 @@ def _capture_sections(device: Device, store_paths: Sequence[str], stores: Sequen
 
 
 def _materials_section(materials: Sequence[dict[str, Any]]) -> dict[str, Any]:
-    """The table of the simulated materials: dynamic range, exposure times, well-exposed fraction."""
+    """The table of the simulated materials: dynamic range, exposure times, usable exposures per pixel."""
+    n_exp = materials[0].get("n_exposures", "") if materials else ""
     return {
         "title": "Materials",
-        "table": [["material", "class", "dynamic range (max/min)", "p99.9/p0.1", "exposures (s)",
-                   "well-exposed (min over views)"]] + [
-            [m["material_id"], m["class"], f"{m['dynamic_range']:.3g}", f"{m['dynamic_range_p99.9_over_p0.1']:.3g}",
-             f"{m['exposure_time_s']['min']:.3g} - {m['exposure_time_s']['max']:.3g}",
-             f"{m['well_exposed_fraction_min']:.4f}"] for m in materials],
+        "text": [
+            "Dynamic range: brightest over darkest luminance of the noise-free ground truth, over all its "
+            "light/view pairs (max/min, and the 99.9th over the 0.1st percentile, which ignores a few "
+            "extreme texels).",
+            f"Usable exposures: of the {n_exp} frames of each bracket, how many the HDR merge uses for a pixel "
+            "on the sample (neither saturated nor, black-subtracted, below the noise floor of twice the read "
+            "noise), counted per frame before the merge on up to 8 views x 4 illuminations. A pixel with one "
+            "usable frame gets that frame's noise alone; the more, the less noise. The former 'well-exposed' "
+            "column (a pixel well exposed in some frame) was 1.0 by construction of the exposure brackets "
+            "and is no longer shown (report.json keeps well_exposed_fraction_min).",
+        ],
+        "table": [["material", "class", "dynamic range [max/min]", "dynamic range [p99.9/p0.1]",
+                   "shortest exposure [s]", "longest exposure [s]", f"usable exposures [of {n_exp}, mean]",
+                   "pixels with one usable exposure [%]", "pixels with none [%]"]] + [
+            [m["material_id"], m["class"], m["dynamic_range"], m["dynamic_range_p99.9_over_p0.1"],
+             m["exposure_time_s"]["min"], m["exposure_time_s"]["max"], m.get("usable_exposures_per_pixel_mean"),
+             100 * m["single_usable_exposure_fraction"] if "single_usable_exposure_fraction" in m else None,
+             100 * m["no_usable_exposure_fraction"] if "no_usable_exposure_fraction" in m else None]
+            for m in materials],
     }
+
+
+#: How to read the ingest table's columns (the report's paragraphs; docs/decisions.md, issue 15).
+INGEST_TEXT = (
+    "Relative L2 errors of the ingested BTF against the simulator's ground truth, on linear RGB and on log "
+    "luminance (log(Y + eps), eps = 0.1 % of the mean Y), as fractions (0.1 = 10 %).",
+    "'fitted': each LED's and channel's rows are first brought to the truth's scale by one least-squares "
+    "factor (48 factors fitted to the truth on the tiny dome): the best any LED calibration could do, so it "
+    "measures the chain (HDR merge, demosaic, rectify, demultiplex) alone. 'calibrated': the BTF as ingested "
+    "with the LED gains measured on the white standard, no factor fitted: the chain and the calibration "
+    "together. The two are close (calibration cost = calibrated - fitted) because the white standard recovers "
+    "every LED's gain to about 0.5 %; they are equal only where the calibration is perfect. A large calibration cost means an LED's rows are off as a whole: a bad white standard, or "
+    "highlights clipped in every exposure, which the fitted figure hides by scaling that LED up (a sparse "
+    "plan's fixed brackets did so in `btf reconstruct --white`: calibrated 0.333 against fitted 0.259, "
+    "docs/decisions.md).",
+    "Floors: the same pipeline on the same materials, views, brackets and dark-current maps, exposed by two "
+    "ideal sensors (fitted errors): 'noise-free' keeps the Bayer mosaic without any noise; 'full RGB' is "
+    "noise-free and measures R, G and B at every pixel, so nothing is demosaicked. Read them as shares of the "
+    "error: ingest - noise-free is the sensor noise's; noise-free - full RGB is the Bayer mosaic's (aliasing "
+    "of texel-scale patterns at about 1.5 camera pixels per texel, the false colour of fine weaves at grazing "
+    "angles); full RGB is what remains with a perfect sensor: the cameras' resolution and foreshortening "
+    "(a texel covers 1.5 pixels frontally, less at grazing views) and rectification's resampling of the "
+    "projected texture to the texel grid. Noise is a small share on this dome (its brackets keep most "
+    "pixels well above the read noise); most of the error is the dome's sampling, which a better pipeline "
+    "cannot remove, only a higher camera resolution (or super-resolution).",
+)
+
+
+def _ingest_table(run: dict[str, Any]) -> list[list[Any]]:
+    """The ingest table: per material and illumination, the errors, the calibration cost and the floors."""
+    floors = run.get("ingest_floors") or {}
+    header = ["material", "illumination", "fitted linear RGB [1]", "noise-free floor, linear [1]",
+              "full-RGB floor, linear [1]", "fitted log Y [1]", "noise-free floor, log Y [1]",
+              "full-RGB floor, log Y [1]", "calibrated linear RGB [1]", "calibrated log Y [1]",
+              "calibration cost, linear [1]", "raw throughput [MB/s]"]
+    rows: list[list[Any]] = [header]
+    for key, label in (("ingest", "single LED"), ("ingest_multiplexed", "S-matrix")):
+        for name, r in run.get(key, {}).items():
+            floor = floors.get(name, {}) if key == "ingest" else {}
+            noise_free, full_rgb = floor.get("noise_free", {}), floor.get("full_rgb", {})
+            cost = (r["calibrated_relative_l2_linear"] - r["relative_l2_linear"]
+                    if "calibrated_relative_l2_linear" in r and "relative_l2_linear" in r else None)
+            rows.append([name, label, r.get("relative_l2_linear"), noise_free.get("relative_l2_linear"),
+                         full_rgb.get("relative_l2_linear"), r.get("relative_l2_log_y"),
+                         noise_free.get("relative_l2_log_y"), full_rgb.get("relative_l2_log_y"),
+                         r.get("calibrated_relative_l2_linear"), r.get("calibrated_relative_l2_log_y"), cost,
+                         r.get("raw_mb_per_s")])
+    return rows
+
+
+def floor_shares(run: dict[str, Any], metric: str = "relative_l2_linear") -> dict[str, float] | None:
+    """The mean over the single-LED materials with floors of the fitted error and its shares:
+    ``noise`` (error - noise-free floor), ``mosaic`` (noise-free - full-RGB floor) and ``sampling``
+    (the full-RGB floor); None without floors."""
+    floors = run.get("ingest_floors") or {}
+    rows = [(r[metric], floors[name]["noise_free"][metric], floors[name]["full_rgb"][metric])
+            for name, r in (run.get("ingest") or {}).items() if name in floors and metric in r]
+    if not rows:
+        return None
+    error, noise_free, full_rgb = (float(np.mean(x)) for x in zip(*rows))
+    return {"error": error, "noise": error - noise_free, "mosaic": noise_free - full_rgb, "sampling": full_rgb}
+
+
+def floor_shares_text(run: dict[str, Any]) -> str:
+    """One sentence with the shares of :func:`floor_shares` on linear RGB and log Y, in percent."""
+    parts = []
+    for metric, label in (("relative_l2_linear", "linear RGB"), ("relative_l2_log_y", "log Y")):
+        shares = floor_shares(run, metric)
+        if shares:
+            parts.append(f"{label}: error {100 * shares['error']:.1f} % = noise {100 * shares['noise']:.1f} % + "
+                         f"Bayer mosaic {100 * shares['mosaic']:.1f} % + sampling and resampling "
+                         f"{100 * shares['sampling']:.1f} %")
+    return ("Mean over the materials, " + "; ".join(parts) + ".") if parts else ""
 
 
 def _ingest_sections(run: dict[str, Any], store_paths: Sequence[str], stores: Sequence[CaptureStore],
@@ -378,24 +452,14 @@ def _ingest_sections(run: dict[str, Any], store_paths: Sequence[str], stores: Se
     if ingest_figs:
         sections.append({"title": "Ingested BTF beside the ground truth (single-LED capture)", "figures": ingest_figs})
     if run.get("ingest"):
-        def cell(r: dict, key: str) -> str:
-            return f"{r[key]:.4f}" if key in r else "-"
-
-        rows = [(name, label, r) for key, label in (("ingest", "single LED"), ("ingest_multiplexed", "multiplexed"))
-                for name, r in run.get(key, {}).items()]
         calibrated = run.get("radiometric") or {}
+        white = Path(calibrated["white_standard"]).name if calibrated.get("white_standard") else "(none)"
         sections.append({
             "title": "Ingest (HDR merge, demosaic, rectify, demultiplex, white-standard calibration) against the "
-                     "ground truth",
-            "text": "Relative L2 error of the ingested BTF against the simulator's truth: 'fitted' after one "
-                    "least-squares scale per LED and channel (the chain alone), 'calibrated' as ingested with the "
-                    "LED gains measured on the white standard "
-                    f"{Path(calibrated['white_standard']).name if calibrated else '(none)'} (chain and calibration).",
-            "table": [["material", "illumination", "fitted linear RGB", "fitted log Y", "calibrated linear RGB",
-                       "calibrated log Y", "raw MB/s"]] + [
-                [name, label, cell(r, "relative_l2_linear"), cell(r, "relative_l2_log_y"),
-                 cell(r, "calibrated_relative_l2_linear"), cell(r, "calibrated_relative_l2_log_y"),
-                 r.get("raw_mb_per_s", "")] for name, label, r in rows],
+                     "ground truth, beside its floors",
+            "text": [*INGEST_TEXT, f"White standard: {white}. The floors are of the single-LED captures. "
+                     + floor_shares_text(run)],
+            "table": _ingest_table(run),
         })
     return sections
 
@@ -403,14 +467,16 @@ def _ingest_sections(run: dict[str, Any], store_paths: Sequence[str], stores: Se
 def _model_section(model: dict[str, Any]) -> dict[str, Any]:
     """``btf demo``'s model database: thesis Table 1 from the leave-one-out evaluation."""
     ks = model["ks"]
+    trends = model["trends"]
     return {
         "title": "Model database (btf build-db): thesis Table 1, leave one out",
-        "text": f"log Y relative projection errors [%] of each material on bases merged without it; full "
-                f"report with spectra and reconstructions: {model['report_html']}. Trends: "
-                + "; ".join(f"{k}: {v}" for k, v in model["trends"].items()),
-        "table": [["class", "FMF"] + [f"class k={k}" for k in ks] + [f"global k={k}" for k in ks]] + [
-            [cls, f"{row['fmf']:.2f}"] + [("-" if row[f"{kind}_{k}"] is None else f"{row[f'{kind}_{k}']:.2f}")
-                                          for kind in ("class", "global") for k in ks]
+        "text": [f"log Y relative projection errors in % of each material on bases merged without it "
+                 f"(paper 1 (den Brok et al.) §4.1.1); the full report, with spectra and reconstructions: "
+                 f"model/report.html.",
+                 "Trends: errors fall with k: " + ("yes" if trends.get("error_falls_with_k") else "no")
+                 + f"; class bases beat the global one in {trends.get('class_beats_global')}."],
+        "table": [["class", "FMF [%]"] + [f"class k={k} [%]" for k in ks] + [f"global k={k} [%]" for k in ks]] + [
+            [cls, row["fmf"]] + [row[f"{kind}_{k}"] for kind in ("class", "global") for k in ks]
             for cls, row in model["table_1"].items()],
     }
 
@@ -419,12 +485,39 @@ def _acquisition_section(acquisition: dict[str, Any]) -> dict[str, Any]:
     """``btf demo``'s acquisition evaluation: the thesis' claims with their verdicts and numbers."""
     return {
         "title": "Acquisition (btf evaluate acquisition): the thesis' claims, leave one out",
-        "text": f"Scale: {json.dumps(acquisition['scale'])}. Each verdict is computed from the numbers "
-                f"beside it; tables, ABRDF images and renderings: {acquisition['report_html']}.",
-        "table": [["claim", "verdict", "numbers"]] + [
-            [f"({k}) {c['claim']}", c["verdict"], json.dumps(c["numbers"])]
-            for k, c in acquisition["claims"].items()],
+        "text": "Each verdict is computed from the numbers beside it; tables, ABRDF images and renderings: "
+                "acquisition/report.html.",
+        "tables": [[["scale", "value"]] + [[label, value] for label, value in acquisition["scale"].items()],
+                   [["claim", "verdict", "numbers"]] + [
+                       [f"({k}) {c['claim']}", c["verdict"], c["numbers"]]
+                       for k, c in acquisition["claims"].items()]],
     }
+
+
+#: What each of the demo's stages does, for the report (keys of ``run["stages"]``).
+STAGE_NAMES = {
+    "simulate": "simulate the materials (single LED)",
+    "simulate white standard": "simulate the white standard",
+    "ingest white standard": "ingest the white standard",
+    "ingest": "ingest the materials, calibrated",
+    "ingest floors": "ingest floors (noise-free and full-RGB sensors)",
+    "simulate multiplexed": "simulate the S-matrix captures",
+    "ingest multiplexed": "ingest the S-matrix captures",
+    "build-db": "build the model database",
+    "evaluate acquisition": "evaluate acquisition",
+    "report": "write this report",
+}
+
+
+def _stages_section(stages: dict[str, Any], total_s: float | None = None) -> dict[str, Any]:
+    """The run's stages: what each did, how long it took and what it reused from an earlier run."""
+    rows: list[list[Any]] = [["stage", "what it does", "time [s]", "share of the stages' time [%]", "reused"]]
+    for name, figures in stages.items():
+        seconds = figures.get("seconds")
+        rows.append([name, STAGE_NAMES.get(name, name), seconds,
+                     100 * seconds / total_s if total_s and seconds is not None else None,
+                     reused_text(figures["reused"]) if figures.get("reused") else None])
+    return {"title": "Stages", "table": rows}
 
 
 def simulation_report(out_dir: str | Path, device: Device, store_paths: Sequence[str],
@@ -455,14 +548,22 @@ def simulation_report(out_dir: str | Path, device: Device, store_paths: Sequence
         "name": device.name, "n_cam": device.n_cam, "n_leds": device.n_leds, "n_turn": device.n_turn,
         "n_lv": device.n_lv, "texture_shape": list(device.texture_shape), "roi_shape": list(device.roi_shape)},
         "materials": materials}
+    if run.get("ingest_floors"):
+        report["ingest_floor_shares"] = {metric: floor_shares(run, metric)
+                                         for metric in ("relative_l2_linear", "relative_l2_log_y")}
     write_json(out / "report.json", report)
     stages = run.get("stages", {})
+    if stages:
+        sections.insert(0, _stages_section(stages, sum(f.get("seconds") or 0.0 for f in stages.values())))
     summary = {
-        **{k: v for k, v in run.items() if not isinstance(v, (dict, list))},
-        "device": f"{device.name}: {device.n_lv} light/view pairs, texture {device.texture_shape[0]}x{device.texture_shape[1]}",
+        "command": f"btf {run.get('command', 'simulate')}",
+        "output folder": run.get("out_dir", str(out)),
+        "device": f"{device.name}: {device.n_cam} cameras x {device.n_leds} LEDs x {device.n_turn} turntable "
+                  f"positions = {device.n_lv:,} light/view pairs, texture {device.texture_shape[0]} x "
+                  f"{device.texture_shape[1]} texels",
         "materials": ", ".join(m["material_id"] for m in materials),
-        **{f"{name} stage": ", ".join(f"reused {reused_text(v)}" if k == "reused" else f"{k} {v}"
-                                      for k, v in figures.items()) for name, figures in stages.items()},
+        **({"stages' time": Cell(round(sum(f.get("seconds") or 0.0 for f in stages.values()), 1), unit="s")}
+           if stages else {}),
     }
     links = [(href, label) for href, label in RELATED_REPORTS if (out / href).is_file()]
     write_html(out / "report.html", f"btf-pipeline report: {run.get('command', 'simulate')}", summary, sections,

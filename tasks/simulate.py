@@ -254,11 +254,6 @@ def capture_metadata(config: SimulationConfig, spec: MaterialSpec, device: Devic
     )
 
 
-def _camera_dark_map(device: Device, camera: int) -> np.ndarray:
-    rng = np.random.default_rng([DEVICE_SEED, camera])
-    return dark_current_map(device.sensor, device.roi_shape, rng)
-
-
 def prepare_material(store_path: str, config: SimulationConfig, spec: MaterialSpec) -> str:
     """Draw the material, write its maps, horizon map, directions and dark frames.
 
@@ -278,7 +273,7 @@ def prepare_material(store_path: str, config: SimulationConfig, spec: MaterialSp
                               "params": maps.params, "seed": spec.seed, "material_id": spec.material_id})
     store.write_truth_directions(*device.lv_directions())
     darks = np.stack([
-        dark_frames(device.sensor, _camera_dark_map(device, c), np.asarray(DARK_EXPOSURES),
+        dark_frames(device.sensor, camera_dark_map(device, c), np.asarray(DARK_EXPOSURES),
                     device.roi_shape, np.random.default_rng([config.seed, spec.index, c, 1 << 20]))
         for c in range(device.n_cam)
     ])
@@ -299,14 +294,46 @@ def load_material_maps(store: CaptureStore) -> tuple[MaterialMaps, np.ndarray]:
     return maps, truth["maps_horizon"][...]
 
 
+def pattern_frames(device: Device, weights: np.ndarray, truth_2x: np.ndarray, turntable: int,
+                   camera: int) -> tuple[np.ndarray, np.ndarray]:
+    """The radiance reaching one camera's region of interest under each illumination pattern, before
+    the sensor (the frames :func:`simulate_view` exposes and the floors of :mod:`tasks.floors` re-expose).
+
+    Parameters
+    ----------
+    weights : (n_illum, n_leds) ndarray
+        Each pattern's LEDs (binary drive).
+    truth_2x : (n_leds, 2h, 2w, 3) ndarray
+        The view's single-LED ground truth at twice the texture resolution.
+
+    Returns
+    -------
+    frames : (n_illum, rows, cols, 3) ndarray of float32
+        Radiance per raw pixel, BTF units times the LEDs' RGB gains (holder around the sample).
+    mask : (rows, cols) ndarray of bool
+        Pixels on the sample.
+    """
+    gain = device.led_rgb_gain.astype(np.float32)                           # (n_leds, 3)
+    texture = np.einsum("il,lc,lhwc->ihwc", weights, gain, truth_2x, optimize=True)
+    background = weights @ (gain * holder_radiance(device.light_dirs(turntable))[:, None])   # (n_illum, 3)
+    frames = render_frame(texture, background, device.homography(turntable, camera),
+                          device.roi_shape, device.sample_size_m)
+    return frames, sample_mask(device, turntable, camera)
+
+
+def camera_dark_map(device: Device, camera: int) -> np.ndarray:
+    """Camera ``camera``'s dark-current map (e-/s per raw pixel), the same for every run of the dome."""
+    rng = np.random.default_rng([DEVICE_SEED, camera])
+    return dark_current_map(device.sensor, device.roi_shape, rng)
+
+
 def simulate_view(store_path: str, config: SimulationConfig, spec: MaterialSpec, turntable: int,
                   camera: int, _prepared: Any = None) -> tuple[int, int]:
     """Render, project and expose every illumination of one view; write its chunks."""
     device = config.build_device()
     store = open_capture_store(store_path, mode="r+", require_complete=False)
     maps, horizon = load_material_maps(store)
-    light_dirs = device.light_dirs(turntable)
-    truth_2x = render_view(maps, device.view_dir(turntable, camera), light_dirs, horizon)
+    truth_2x = render_view(maps, device.view_dir(turntable, camera), device.light_dirs(turntable), horizon)
     store.write_truth_view(turntable, camera, downsample2(truth_2x), truth_2x)
 
     # Light superposes: each pattern's radiance is the weighted sum of its LEDs'
@@ -320,19 +347,14 @@ def simulate_view(store_path: str, config: SimulationConfig, spec: MaterialSpec,
         if not taken.size:
             return turntable, camera                                        # the plan takes nothing here
         weights, planned_times = weights[taken], plan_times[turntable, camera, taken]
-    gain = device.led_rgb_gain.astype(np.float32)                           # (n_leds, 3)
-    texture = np.einsum("il,lc,lhwc->ihwc", weights, gain, truth_2x, optimize=True)
-    background = weights @ (gain * holder_radiance(light_dirs)[:, None])    # (n_illum, 3)
-    frames = render_frame(texture, background, device.homography(turntable, camera),
-                          device.roi_shape, device.sample_size_m)
-    mask = sample_mask(device, turntable, camera)
+    frames, mask = pattern_frames(device, weights, truth_2x, turntable, camera)
     if planned_times is None:
         times = choose_bracket(frames, device.sensor, mask=mask)            # (n_illum, n_exp)
     else:
         times = planned_times                   # shorter brackets end in 0 s: those frames stay 0
     rng = np.random.default_rng([config.seed, spec.index, turntable, camera])
     raw = expose(frames[:, None], np.where(times > 0, times, 1e-6), device.sensor,
-                 _camera_dark_map(device, camera), rng)
+                 camera_dark_map(device, camera), rng)
     raw[times == 0] = 0
     store.write_bracket(turntable, camera, raw, times)
     return turntable, camera

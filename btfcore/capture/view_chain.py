@@ -69,7 +69,7 @@ def view_window(homography: np.ndarray, frame_shape: tuple[int, int], texture_sh
 
 
 def process_view(frames: np.ndarray, exposure_time: np.ndarray, patterns: np.ndarray, *,
-                 bayer_pattern: str, black_level: float, white_level: float, homography: np.ndarray,
+                 bayer_pattern: str | None, black_level: float, white_level: float, homography: np.ndarray,
                  texture_shape: tuple[int, int], sample_size_m: float,
                  dark_frames: np.ndarray | None = None, dark_exposure_time: np.ndarray | None = None,
                  gain_e_per_dn: float | None = None, read_noise_e: float | None = None,
@@ -83,7 +83,11 @@ def process_view(frames: np.ndarray, exposure_time: np.ndarray, patterns: np.nda
     ----------
     frames : (n_illum, n_exp, rows, cols) ndarray of uint16
         The view's raw Bayer brackets, one per illumination pattern: whole
-        frames, or only the window when ``window`` is given.
+        frames, or only the window when ``window`` is given. With
+        ``bayer_pattern=None``, ``(n_illum, n_exp, rows, cols, 3)`` frames of a
+        full-RGB sensor (every pixel measures R, G and B; uint16 or float):
+        merged per channel and not demosaicked (the simulator's ideal sensor,
+        :class:`btfcore.simulate.sensor.SensorModel`).
     exposure_time : (n_illum, n_exp) ndarray
         Seconds, increasing along the exposure axis.
     patterns : (n_illum, n_leds) ndarray
@@ -126,10 +130,11 @@ def process_view(frames: np.ndarray, exposure_time: np.ndarray, patterns: np.nda
     else:
         row_win, col_win, A = window
         expected = (row_win.stop - row_win.start, col_win.stop - col_win.start)
-        if frames.shape[2:] != expected:
+        if frames.shape[2:4] != expected:
             raise ValueError(f"frames are {frames.shape[2:]} pixels but the view's window {row_win}, {col_win} "
                              f"is {expected}: pass frames[..., row_window, col_window]")
-    win_shape = frames.shape[2:]
+    win_shape = frames.shape[2:4]
+    full_rgb = bayer_pattern is None                              # no mosaic: frames hold R, G and B
     rectified = np.empty((n_illum, *texture_shape, 3), dtype=np.float32) if out is None else out
     if rectified.shape != (n_illum, *texture_shape, 3) or rectified.dtype != np.float32:
         raise ValueError(f"out must be a float32 array of shape {(n_illum, *texture_shape, 3)}, got "
@@ -142,8 +147,8 @@ def process_view(frames: np.ndarray, exposure_time: np.ndarray, patterns: np.nda
                                    black_level=black_level)
         dark_line = ((2.0 * d1 - d2).astype(np.float32), (d2 - d1).astype(np.float32))   # offset DN, rate DN/s
     block = min(32, n_illum)  # illuminations demosaicked as one batch and rectified by one sparse product
-    hdr = np.empty((block, *win_shape), dtype=np.float32)                                    # reused buffers
-    rgb = np.empty((block, *win_shape, 3), dtype=np.float32)
+    hdr = np.empty((block, *frames.shape[2:]), dtype=np.float32)                             # reused buffers
+    rgb = hdr if full_rgb else np.empty((block, *win_shape, 3), dtype=np.float32)
     dark = None if dark_line is None else np.empty((n_exp, *win_shape), dtype=np.float32)
     for first in range(0, n_illum, block):
         n = min(block, n_illum - first)
@@ -155,10 +160,12 @@ def process_view(frames: np.ndarray, exposure_time: np.ndarray, patterns: np.nda
                     dark[k_exp] += dark_line[0]                                     # dark = offset + rate t
             hdr[k], valid = merge_linear(frames[i], exposure_time[i], black_level=black_level,
                                          white_level=white_level, gain_e_per_dn=gain_e_per_dn,
-                                         read_noise_e=read_noise_e, dark=dark,
+                                         read_noise_e=read_noise_e,
+                                         dark=dark[..., None] if full_rgb and dark is not None else dark,
                                          saturation_margin=settings.saturation_margin)
             valid_fraction[i] = float(valid.mean())
-        demosaic(hdr[:n], bayer_pattern, method=settings.demosaic, out=rgb[:n])
+        if not full_rgb:
+            demosaic(hdr[:n], bayer_pattern, method=settings.demosaic, out=rgb[:n])
         # (n, pixels) -> (pixels, n) of RGB triplets and back: OpenCV's blocked transposes (3x numpy's
         # strided copies; demosaicking into a strided view was slower still), so that one sparse
         # product rectifies the n images

@@ -30,6 +30,7 @@ References
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
@@ -39,7 +40,9 @@ from btfcore.dome import BAYER_PATTERNS, SensorSpec
 
 __all__ = [
     "BracketReport",
+    "CAMERA",
     "GAUSSIAN_PHOTON_THRESHOLD_E",
+    "SensorModel",
     "WELL_EXPOSED",
     "apply_psf",
     "bayer_channel_index",
@@ -63,6 +66,33 @@ WELL_EXPOSED: tuple[float, float] = (0.01, 0.9)
 GAUSSIAN_PHOTON_THRESHOLD_E: float = 100.0
 
 _CHANNEL = {"R": 0, "G": 1, "B": 2}
+
+
+@dataclass(frozen=True)
+class SensorModel:
+    """Which of the sensor's effects a simulated exposure has (the floors of the demo's report).
+
+    Attributes
+    ----------
+    noise : bool
+        Photon (and dark-current shot) noise, read noise and rounding to whole DN. ``False``:
+        every frame is its noise-free mean, :func:`expected_dn` exactly (float64, not rounded).
+    mosaic : bool
+        The Bayer colour-filter array: each raw pixel measures one colour. ``False``: an ideal
+        full-RGB sensor whose every pixel measures R, G and B (frames get a trailing axis of 3,
+        which ingest merges per channel and does not demosaic).
+
+    The default is the camera the dome has; ``SensorModel(noise=False)`` is a noise-free
+    capture and ``SensorModel(noise=False, mosaic=False)`` a noise-free full-RGB one
+    (docs/simulator-physics.md, "Error floors").
+    """
+
+    noise: bool = True
+    mosaic: bool = True
+
+
+#: The dome's camera: noisy Bayer frames.
+CAMERA = SensorModel()
 
 
 # --------------------------------------------------------------------------- mosaic
@@ -152,7 +182,7 @@ def apply_psf(radiance_rgb: np.ndarray, sigma_px: float) -> np.ndarray:
     return ndimage.gaussian_filter(radiance_rgb, sigma=sigma, mode="reflect", truncate=4.0)
 
 
-def signal_rate(radiance_rgb: np.ndarray, spec: SensorSpec, psf: bool = True) -> np.ndarray:
+def signal_rate(radiance_rgb: np.ndarray, spec: SensorSpec, psf: bool = True, mosaic: bool = True) -> np.ndarray:
     """Photo-electron rate of every raw pixel.
 
     Parameters
@@ -163,15 +193,19 @@ def signal_rate(radiance_rgb: np.ndarray, spec: SensorSpec, psf: bool = True) ->
         Sensor.
     psf : bool
         Apply the sensor's PSF (if ``spec.psf_sigma_px > 0``).
+    mosaic : bool
+        Bayer filters (the camera); ``False``: a full-RGB sensor (:class:`SensorModel`).
 
     Returns
     -------
-    rate : (..., rows, cols) ndarray of float64
-        ``k_ch(p) * L_p,ch(p)`` in e-/s.
+    rate : (..., rows, cols) or, without ``mosaic``, (..., rows, cols, 3) ndarray of float64
+        ``k_ch(p) * L_p,ch(p)`` in e-/s (every channel's ``k_ch L_p,ch`` without ``mosaic``).
     """
     rad = np.asarray(radiance_rgb)
     if psf and spec.psf_sigma_px > 0:
         rad = apply_psf(rad, spec.psf_sigma_px)
+    if not mosaic:
+        return rad * np.asarray(spec.sensitivity_rgb, dtype=np.float64)                  # eq. k L, per channel
     return _mosaic_scaled(rad, spec.bayer_pattern, np.asarray(spec.sensitivity_rgb), dtype=np.float64)  # eq. k L
 
 
@@ -256,7 +290,7 @@ def _dark_rate(spec: SensorSpec, dark_map, shape) -> np.ndarray | float:
 
 
 def expose(radiance_rgb: np.ndarray, exposure_time, spec: SensorSpec, dark_map: np.ndarray | None,
-           rng: np.random.Generator, psf: bool = True) -> np.ndarray:
+           rng: np.random.Generator, psf: bool = True, model: SensorModel = CAMERA) -> np.ndarray:
     """Raw frames of a linear sensor exposed to a radiance image.
 
     Parameters
@@ -276,11 +310,15 @@ def expose(radiance_rgb: np.ndarray, exposure_time, spec: SensorSpec, dark_map: 
         Noise source; the result is a deterministic function of its state.
     psf : bool
         Apply the Gaussian PSF when ``spec.psf_sigma_px > 0``.
+    model : SensorModel
+        The camera (noisy Bayer frames, default), a noise-free one or a full-RGB one.
 
     Returns
     -------
     raw : (*broadcast(lead, t.shape), rows, cols) ndarray of uint16
-        Values in ``[0, spec.white_level]``.
+        Values in ``[0, spec.white_level]``. Without ``model.mosaic`` the frames have a trailing
+        axis of 3 (R, G, B of every pixel); without ``model.noise`` they are :func:`expected_dn`
+        exactly (float64, not rounded) and ``rng`` is not used.
 
     Notes
     -----
@@ -304,13 +342,20 @@ def expose(radiance_rgb: np.ndarray, exposure_time, spec: SensorSpec, dark_map: 
     t = np.asarray(exposure_time, dtype=np.float64)
     if not np.all(np.isfinite(t)) or np.any(t <= 0):
         raise ValueError(f"exposure times must be finite and > 0, got {t}")
-    shape = rad.shape[-3:-1]
+    if not model.noise:
+        return expected_dn(rad, t, spec, dark_map, psf, mosaic=model.mosaic)
     if psf and spec.psf_sigma_px > 0:
         rad = apply_psf(rad, spec.psf_sigma_px)
-    rate = _mosaic_scaled(rad, spec.bayer_pattern, np.asarray(spec.sensitivity_rgb, dtype=np.float32),
-                          dtype=np.float32)                    # eq. k L, (..., rows, cols) e-/s
-    dark = _dark_rate(spec, dark_map, shape)
-    lead = np.broadcast_shapes(rate.shape[:-2], t.shape)
+    dark = _dark_rate(spec, dark_map, rad.shape[-3:-1])
+    if model.mosaic:
+        rate = _mosaic_scaled(rad, spec.bayer_pattern, np.asarray(spec.sensitivity_rgb, dtype=np.float32),
+                              dtype=np.float32)                # eq. k L, (..., rows, cols) e-/s
+        shape = rad.shape[-3:-1]
+    else:                                                      # every pixel measures R, G and B
+        rate = (rad * np.asarray(spec.sensitivity_rgb, dtype=np.float32)).astype(np.float32, copy=False)
+        shape = rad.shape[-3:]
+        dark = np.asarray(dark)[..., None] if np.ndim(dark) else dark
+    lead = np.broadcast_shapes(rate.shape[:-len(shape)], t.shape)
     rate_b = np.broadcast_to(rate, lead + shape)
     t_b = np.broadcast_to(t, lead)
     out = np.empty(lead + shape, dtype=np.uint16)
@@ -324,7 +369,7 @@ def expose(radiance_rgb: np.ndarray, exposure_time, spec: SensorSpec, dark_map: 
 
 
 def expected_dn(radiance_rgb: np.ndarray, exposure_time, spec: SensorSpec,
-                dark_map: np.ndarray | None = None, psf: bool = True) -> np.ndarray:
+                dark_map: np.ndarray | None = None, psf: bool = True, mosaic: bool = True) -> np.ndarray:
     """Noise-free mean raw value (the model of :func:`expose` without noise or rounding).
 
     Parameters
@@ -340,24 +385,29 @@ def expected_dn(radiance_rgb: np.ndarray, exposure_time, spec: SensorSpec,
         signal alone).
     psf : bool
         Apply the PSF.
+    mosaic : bool
+        Bayer filters; ``False``: a full-RGB sensor, frames with a trailing axis of 3.
 
     Returns
     -------
     dn : (*broadcast(lead, t.shape), rows, cols) ndarray of float64
-        ``min(black + min(lambda, e_fw) / gain, white)``.
+        ``min(black + min(lambda, e_fw) / gain, white)`` (``(..., rows, cols, 3)`` without ``mosaic``).
     """
     rad = np.asarray(radiance_rgb)
     t = np.asarray(exposure_time, dtype=np.float64)
-    rate = signal_rate(rad, spec, psf)
+    rate = signal_rate(rad, spec, psf, mosaic)
     dark = _dark_rate(spec, dark_map, rad.shape[-3:-1])
-    tt = t.reshape(t.shape + (1, 1))
+    pixel_axes = 2 if mosaic else 3
+    if not mosaic and np.ndim(dark):
+        dark = np.asarray(dark)[..., None]
+    tt = t.reshape(t.shape + (1,) * pixel_axes)
     lam = rate * tt + dark * tt                                                    # eq. lambda
     dn = spec.black_level + np.minimum(lam, spec.full_well_e) / spec.gain_e_per_dn  # eq. DN
     return np.minimum(dn, spec.white_level)
 
 
 def dark_frames(spec: SensorSpec, dark_map: np.ndarray | None, exposure_times, shape: tuple[int, int],
-                rng: np.random.Generator) -> np.ndarray:
+                rng: np.random.Generator, model: SensorModel = CAMERA) -> np.ndarray:
     """Raw frames with the shutter closed (calibration dark frames).
 
     Parameters
@@ -372,6 +422,10 @@ def dark_frames(spec: SensorSpec, dark_map: np.ndarray | None, exposure_times, s
         ``(rows, cols)``.
     rng : numpy.random.Generator
         Noise source.
+    model : SensorModel
+        Without ``model.noise`` the frames are their mean exactly (float64) and ``rng`` is not used.
+        The dark current does not depend on the colour filter, so one dark frame serves a full-RGB
+        sensor's three channels.
 
     Returns
     -------
@@ -383,6 +437,10 @@ def dark_frames(spec: SensorSpec, dark_map: np.ndarray | None, exposure_times, s
         raise ValueError(f"dark exposure times must be finite and > 0, got {times}")
     shape = tuple(int(v) for v in shape)
     dark = np.broadcast_to(_dark_rate(spec, dark_map, shape), shape)
+    if not model.noise:
+        lam = dark[None] * times[:, None, None]                                  # eq. lambda = D t
+        return np.minimum(spec.black_level + np.minimum(lam, spec.full_well_e) / spec.gain_e_per_dn,
+                          spec.white_level)
     out = np.empty((times.size,) + shape, dtype=np.uint16)
     for k, tk in enumerate(times):
         _readout((dark * tk).reshape(-1), spec, rng, out[k].reshape(-1))     # eq. lambda = D t

@@ -8,6 +8,7 @@ import pytest
 from btfcore.dome import BAYER_PATTERNS, SensorSpec
 from btfcore.simulate.sensor import (
     WELL_EXPOSED,
+    SensorModel,
     apply_psf,
     bayer_channel_index,
     choose_bracket,
@@ -193,6 +194,37 @@ def test_expose_broadcasting_and_determinism():
         expose(rad, -1.0, spec, None, rng)
     with pytest.raises(ValueError):
         expose(rad * np.nan, 1.0, spec, None, rng)
+
+
+def test_noise_free_frames_are_the_expected_values_exactly():
+    spec = SensorSpec()
+    rng = np.random.default_rng(12)
+    rad = rng.uniform(0, 0.3, (2, 1, 16, 20, 3))
+    times = np.array([[1e-2, 1e-1], [2e-2, 5.0]])                   # the last one saturates
+    dark = dark_current_map(spec, (16, 20), rng)
+    frames = expose(rad, times, spec, dark, None, model=SensorModel(noise=False))
+    assert frames.dtype == np.float64 and frames.shape == (2, 2, 16, 20)
+    np.testing.assert_array_equal(frames, expected_dn(rad, times, spec, dark))
+    assert frames.max() == spec.white_level
+    darks = dark_frames(spec, dark, [1e-2, 1.0], (16, 20), None, SensorModel(noise=False))
+    np.testing.assert_array_equal(darks, expected_dn(np.zeros((2, 16, 20, 3)), np.array([1e-2, 1.0]), spec, dark))
+
+
+def test_full_rgb_frames_measure_every_channel_at_every_pixel():
+    spec = SensorSpec(bayer_pattern="GRBG")
+    rng = np.random.default_rng(13)
+    rad = rng.uniform(0, 0.03, (16, 20, 3))                          # below saturation
+    full = expose(rad, 0.05, spec, None, None, model=SensorModel(noise=False, mosaic=False))
+    bayer = expose(rad, 0.05, spec, None, None, model=SensorModel(noise=False))
+    assert full.shape == (16, 20, 3)                                 # nothing to demosaic
+    np.testing.assert_array_equal(mosaic(full, spec.bayer_pattern), bayer)
+    np.testing.assert_allclose(full - spec.black_level,
+                               rad * np.asarray(spec.sensitivity_rgb) * 0.05 / spec.gain_e_per_dn
+                               + spec.dark_current_e_per_s * 0.05 / spec.gain_e_per_dn, rtol=1e-12)
+    noisy = expose(rad, 0.05, spec, None, np.random.default_rng(1), model=SensorModel(mosaic=False))
+    assert noisy.dtype == np.uint16 and noisy.shape == (16, 20, 3)
+    # the mean over 960 noisy pixels
+    assert abs(noisy.mean() - full.mean()) < 2.0 and not np.array_equal(noisy, np.rint(full))
 
 
 def _hdr_image(rng, shape, dynamic_range):

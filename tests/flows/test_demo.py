@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import re
 
+import pytest
 import zarr
 
 
@@ -16,7 +17,8 @@ def test_demo_simulates_calibrates_ingests_and_reports(run_btf, tmp_path):
     # stderr is not a terminal here (a job log): every stage says when it starts and ends, timestamped
     stamped = re.findall(r"^\d{4}-\d\d-\d\d \d\d:\d\d:\d\d (.+)$", stderr, re.M)
     assert stamped[0] == "btf demo: checking the inputs ...", stderr[:2000]
-    for stage in ("simulate tiny", "ingest"):
+    for stage in ("simulate tiny: 2 materials", "simulate tiny: white standard", "ingest: 2 materials, calibrated",
+                  "ingest floors: noise-free and full-RGB sensors"):
         assert f"{stage}: started" in stamped and any(s.startswith(f"{stage}: ") and s.endswith(", done")
                                                        for s in stamped), stderr[-3000:]
     report = json.loads((out / "report.json").read_text())
@@ -28,8 +30,19 @@ def test_demo_simulates_calibrates_ingests_and_reports(run_btf, tmp_path):
             # a calibration that failed (wrong unit, wrong LED) would be off by far more than 0.05
             assert abs(errors["calibrated_relative_l2_linear"] - errors["relative_l2_linear"]) < 0.05, errors
             assert 0 < errors["relative_l2_linear"] < 0.5, errors
+    # every ingest error beside its floors: a noise-free capture, and a noise-free full-RGB sensor
+    assert set(report["ingest_floors"]) == set(report["ingest"])
+    for name, floors in report["ingest_floors"].items():
+        for metric in ("relative_l2_linear", "relative_l2_log_y"):
+            assert 0 < floors["full_rgb"][metric] <= floors["noise_free"][metric] <= report["ingest"][name][metric] + 1e-3
+    shares = report["ingest_floor_shares"]["relative_l2_linear"]
+    assert shares["noise"] + shares["mosaic"] + shares["sampling"] == pytest.approx(shares["error"])
+    assert report["stages"]["ingest floors"]["reused"] == {"materials": [0, 2]}
+    for material in report["materials"]:
+        assert 1 <= material["usable_exposures_per_pixel_mean"] <= material["n_exposures"], material
     html = (out / "report.html").read_text()
     assert "calibrated log Y" in html and "multiplexed" in html
+    assert "noise-free floor, linear [1]" in html and "full-RGB floor, log Y [1]" in html
     assert "Ingested BTF beside the ground truth" in html and (out / "report_files" / "000-leather_ingest_lv0.png").exists()
     btf = zarr.open_group(str(out / "btf-multiplexed" / "000-leather.zarr"), mode="r")
     assert btf.attrs["complete"] and "white-standard calibrated" in btf.attrs["units"]
@@ -39,6 +52,8 @@ def test_demo_simulates_calibrates_ingests_and_reports(run_btf, tmp_path):
     assert code == 0, stderr[-3000:]
     again = json.loads((out / "report.json").read_text())
     assert again["stages"]["simulate"]["views_rendered"] == 0
+    assert again["stages"]["ingest floors"]["reused"] == {"materials": [2, 2]}
+    assert again["ingest_floors"] == report["ingest_floors"]
     assert all(r["views_processed"] == 0 for r in again["ingest"].values())
     # and says so, per stage, in its report (and, with progress, in one line per stage)
     for stage in ("simulate", "ingest", "simulate multiplexed", "ingest multiplexed"):

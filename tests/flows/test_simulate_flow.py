@@ -31,6 +31,10 @@ def test_flow_writes_valid_stores_and_reports(tiny_database):
         assert material["dynamic_range"] >= 1e3, material
         # the operator's brackets expose every sample pixel well at least once
         assert material["well_exposed_fraction_min"] > 0.99, material
+        # how many frames of a bracket the HDR merge can use varies (the report shows it, not the above)
+        assert 1 < material["usable_exposures_per_pixel_mean"] < material["n_exposures"], material
+        assert 0 < material["single_usable_exposure_fraction"] < 1 and material["no_usable_exposure_fraction"] < 0.01
+    assert "ingest_floors" not in data                       # btf simulate ingests nothing: no floors
     html = (out / "report.html").read_text()
     images = re.findall(r"src='([^']+)'", html)
     assert len(images) == 1 + 3 + 2 * 4 + 2  # dome, raw strips, textures, ABRDFs

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -102,3 +104,48 @@ def test_a_database_that_cannot_fit_is_refused_before_any_work(tmp_path, dask_cl
     with pytest.raises(ValueError, match=r"needs about .* GB but only .* GB are free"):
         simulate_database(config, tmp_path / "huge", dask_client)
     assert not (tmp_path / "huge").exists()
+
+
+def test_noise_free_frames_reproduce_the_capture_without_its_noise(tmp_path, dask_client):
+    # the floors re-expose the stored truth through the simulator's own frames: the same brackets,
+    # and a noise-free frame is the mean the noisy capture scatters around
+    from btfcore.simulate.sensor import SensorModel, expected_dn, expose
+    from tasks.simulate import camera_dark_map, pattern_frames
+
+    config = SimulationConfig(device="tiny", n_materials=1, seed=4, classes=("cloth",), n_turntable=1)
+    store = open_capture_store(simulate_database(config, tmp_path, dask_client).stores[0])
+    device, t, c, n_leds = config.build_device(), 0, 2, store.n_leds
+    truth_2x = store.truth["btf_2x"][(t * store.n_cam + c) * n_leds:(t * store.n_cam + c + 1) * n_leds]
+    frames, _ = pattern_frames(device, store.illumination.astype(np.float32), truth_2x, t, c)
+    times = store.exposure_time[t, c]
+    clean = expose(frames[:, None], times, device.sensor, camera_dark_map(device, c), None,
+                   model=SensorModel(noise=False))
+    dark_map = camera_dark_map(device, c)
+    np.testing.assert_array_equal(clean, expected_dn(frames[:, None], times, device.sensor, dark_map))
+    raw = store.raw[t, c].astype(np.float64)
+    unsaturated = (raw < store.meta.white_level) & (clean < store.meta.white_level)
+    assert abs(np.mean((raw - clean)[unsaturated])) < 0.5          # unbiased: the noise averages out
+    full = expose(frames[:, None], times, device.sensor, None, None, model=SensorModel(noise=False, mosaic=False))
+    assert full.shape == (*raw.shape, 3)                            # R, G and B at every pixel
+
+
+def test_floors_are_below_the_ingest_error_and_reused(tmp_path, dask_client):
+    # property on seeded data: removing the noise cannot make the chain worse, nor can removing the mosaic
+    from tasks.floors import FLOOR_SENSORS, ingest_floors
+    from tasks.ingest import btf_error_against_truth, ingest_capture
+
+    config = SimulationConfig(device="tiny", n_materials=2, seed=6, classes=("cloth", "stone"), n_turntable=1)
+    stores = simulate_database(config, tmp_path / "db", dask_client).stores
+    result = ingest_floors(config, stores, dask_client, tmp_path / "floors.json")
+    assert result["reused"] == {"materials": [0, 2]} and result["seconds"] > 0
+    for path in stores:
+        out = tmp_path / "btf" / Path(path).name
+        ingest_capture(path, out, dask_client)
+        error = btf_error_against_truth(out, path)
+        floors = result["floors"][Path(path).stem]
+        assert set(floors) == set(FLOOR_SENSORS)
+        for metric in ("relative_l2_linear", "relative_l2_log_y"):
+            assert 0 < floors["full_rgb"][metric] <= floors["noise_free"][metric] <= error[metric] + 1e-3, \
+                (path, metric, floors, error)
+    again = ingest_floors(config, stores, dask_client, tmp_path / "floors.json")
+    assert again["reused"] == {"materials": [2, 2]} and again["floors"] == result["floors"]
