@@ -154,6 +154,18 @@ def schedule(p: argparse.ArgumentParser) -> None:
     p.add_argument("--classes", default=None, metavar="JSON", help="material classes for stores without one")
 
 
+def deploy(p: argparse.ArgumentParser) -> None:
+    """The arguments of ``btf deploy``."""
+    p.add_argument("--file", default=None, metavar="YAML",
+                   help="deployments to register (Prefect's prefect.yaml layout) [default: the repository's "
+                        "prefect.yaml]")
+    p.add_argument("--pool", default=None, metavar="NAME",
+                   help="process work pool to register them on [default: each deployment's work_pool.name, "
+                        "else btf]")
+    p.add_argument("--name", action="append", default=None, metavar="DEPLOYMENT",
+                   help="register only this deployment (repeatable) [default: all]")
+
+
 def export_exr(p: argparse.ArgumentParser) -> None:
     """The arguments of ``btf export-exr``."""
     p.add_argument("btf", metavar="BTF", help="BTF store (.zarr)")
@@ -232,3 +244,11 @@ def _add_calibration(p: argparse.ArgumentParser, note: str = "") -> None:
     p.add_argument("--colour-matrix", default=None, metavar="JSON",
                    help='camera colour matrix applied after the LED gains: {"matrix": [[...], [...], [...]]}, '
                         "3x3 or 3x4 (affine)")
+
+
+def cluster(p: argparse.ArgumentParser) -> None:
+    """The arguments of ``btf cluster``."""
+    p.add_argument("action", choices=("spec",),
+                   help="spec: print the cluster resource of a kubernetes profile as YAML (for kubectl apply -f -)")
+    p.add_argument("profile", metavar="PROFILE", help="execution profile YAML of kind kubernetes "
+                   "(example: infra/kubernetes.yaml)")

@@ -34,7 +34,7 @@ from flows import arguments
 from flows.acquisition_cli import (PLAN_HELP, RENDER_HELP, SAMPLE_HELP, add_plan_arguments, add_render_arguments,
                                    add_sample_arguments, run_plan, run_render, run_sample)
 from flows.progress import say
-from flows.server import SERVER_HELP, add_server_arguments, run_server
+from flows.server import CHILD_ENV, SERVER_HELP, add_server_arguments, run_server
 
 EXIT_FAILED = 1
 EXIT_BAD_INPUT = 2
@@ -220,20 +220,26 @@ def _evaluate(args: argparse.Namespace) -> int:
 
 
 def _schedule(args: argparse.Namespace) -> int:
-    if not os.environ.get("PREFECT_API_URL"):
-        print("btf schedule: no Prefect server: set PREFECT_API_URL to a running server (start one with "
-              "`prefect server start`); a cron schedule does not fire on the temporary server of a single run",
-              file=sys.stderr)
-        return EXIT_RUNTIME
-    from prefect import serve
+    from flows.schedule import serve_build_db
 
-    from flows.schedule import build_db_deployment
+    serve_build_db(args.db, args.out, args.cron, cluster=args.cluster, classes=args.classes, name=args.name)
+    return 0
 
-    deployment = build_db_deployment(args.db, args.out, args.cron, cluster=args.cluster, classes=args.classes,
-                                     name=args.name)
-    print(json.dumps({"serving": f"btf-build-db-scheduled/{args.name}", "cron": args.cron,
-                      "parameters": deployment.parameters}, indent=2), flush=True)
-    serve(deployment)
+
+def _deploy(args: argparse.Namespace) -> int:
+    from flows.schedule import register
+
+    result = register(args.file, pool=args.pool, names=args.name)
+    print(json.dumps(result, indent=2))
+    for command in result["worker_commands"]:
+        say(f"btf deploy: a worker in this project's environment runs them: {command}")
+    return 0
+
+
+def _cluster(args: argparse.Namespace) -> int:
+    from flows.runtime import cluster_spec
+
+    print(cluster_spec(args.profile), end="")
     return 0
 
 
@@ -424,7 +430,7 @@ COMMANDS: dict[str, Command] = {command.name: command for command in (
                         "OUT/report.html. An unfinished run resumes where it stopped; finished stores are never "
                         "overwritten unless --overwrite is given.",
             add_arguments=arguments.simulate, prepare=_prepare_simulate, flow=_simulate_flow,
-            inputs={"plan": "--plan", "classes": "--classes"}),
+            inputs={"plan": "--plan"}),
     Command("demo", help="the main job on the embedded default data",
             description="The main job on the embedded virtual dome: simulate two materials per class on the tiny "
                         "dome (one per class also S-matrix multiplexed) and a white standard, calibrate the LEDs, "
@@ -474,12 +480,21 @@ COMMANDS: dict[str, Command] = {command.name: command for command in (
                         "not change, so adding a material recomputes only it, its class and the global merge.",
             add_arguments=arguments.build_db, prepare=_prepare_build_db, flow=_build_db_flow,
             inputs={"db": "DB", "classes": "--classes"}),
-    Command("schedule", help="serve a scheduled deployment (cron) of a database build",
+    Command("schedule", help="serve a scheduled deployment (cron) of a database build from this shell",
             description="Serve a Prefect deployment that runs `btf build-db DB --out OUT` on a cron schedule, each "
                         "run on the Dask cluster of --cluster and incremental (only new or changed materials are "
-                        "fitted). Needs a running Prefect server: set PREFECT_API_URL (e.g. `prefect server start` "
-                        "elsewhere); cron schedules do not fire on a temporary server. Runs until stopped.",
+                        "fitted). Needs a Prefect server that stays up: PREFECT_API_URL, else the running `btf "
+                        "server` (`btf server start`); cron schedules do not fire on a temporary server. Runs until "
+                        "stopped; `btf deploy` registers the same build with a work pool instead.",
             add_arguments=arguments.schedule, run=_schedule, inputs={"db": "DB", "classes": "--classes"}),
+    Command("deploy", help="register the Prefect deployments of prefect.yaml with a process work pool",
+            description="Register the deployments of prefect.yaml (build-db on a cron schedule, ingest, reconstruct, "
+                        "evaluate acquisition; each with its parameters and execution profile) with the Prefect "
+                        "API of PREFECT_API_URL, else the running `btf server`, on a process work pool (created if "
+                        "missing), and print the `prefect worker start --pool NAME` command that runs them. A "
+                        "deployment that exists is updated. Relative paths in its parameters are taken from the "
+                        "repository root, where every run starts.",
+            add_arguments=arguments.deploy, run=_deploy, inputs={"file": "--file"}, outputs={}),
     Command("export-exr", help="write BTF textures as OpenEXR files",
             description="Write selected (or all) textures of a BTF store (from `btf ingest`) as float32 RGB OpenEXR "
                         "files named lv<row>_t<turntable>_c<camera>_l<light>.exr, with the light and view directions "
@@ -523,6 +538,11 @@ COMMANDS: dict[str, Command] = {command.name: command for command in (
     Command("render", help="render a BTF store on a sphere, cylinder or plane to a PNG",
             description=RENDER_HELP, raw_description=True, add_arguments=add_render_arguments, run=run_render,
             inputs={"btf": "BTF", "env": "--env"}),
+    Command("cluster", help="print the cluster resource of an execution profile (kubernetes: for kubectl)",
+            description="`btf cluster spec PROFILE` prints the DaskCluster resource that a kubernetes execution "
+                        "profile creates (the dask-kubernetes operator's spec, with the worker environment), as YAML "
+                        "that `kubectl apply -f -` takes (docs/clusters.md). The profile is checked first.",
+            add_arguments=arguments.cluster, run=_cluster, inputs={"profile": "PROFILE"}, outputs={}),
     Command("server", help="start, stop or show a local Prefect server that later commands reuse",
             description=SERVER_HELP, add_arguments=add_server_arguments, run=run_server, outputs={}),
 )}
@@ -620,6 +640,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.quiet and (args.verbose or args.log_level):
         parser.error("--quiet shows errors only: give it without --verbose and --log-level")
     args.no_progress = args.no_progress or args.quiet
+    if COMMANDS[args.command].on_cluster(args):  # a btf server's runner has the imports done: run there
+        from flows.server import forward
+
+        code = forward(list(sys.argv[1:] if argv is None else argv),
+                       detail_flags=bool(args.verbose or args.log_level or args.quiet))
+        if code is not None:
+            return code
     with _library_log_level(args):
         try:
             return _main(args)
@@ -669,27 +696,30 @@ def _label(args: argparse.Namespace) -> str:
 def _starting_line(label: str, profile: Any) -> str:
     """What a computing command starts once its inputs are checked: the Prefect API and the Dask cluster
     of ``profile`` (a :class:`flows.runtime.Profile`), or the ``btf server``'s where one is recorded."""
+    from flows.clusters import planned
     from flows.server import recorded_server_url
 
     url = os.environ.get("PREFECT_API_URL") or profile.prefect.get("api_url")
     server = None if url else recorded_server_url()
-    cluster = profile.cluster
-    workers, threads = cluster.get("n_workers", 2), cluster.get("threads_per_worker", 1)
-    size = (f"{workers} worker{'s' * (workers != 1)} x {threads} thread{'s' * (threads != 1)}"
-            + (", in this process" if cluster.get("processes") is False else ""))
-    if server:
-        return (f"{label}: connecting to the btf server's Prefect API at {server} and its {cluster.get('kind', 'local')} "
+    kind, size = profile.kind, planned(profile)
+    if server and kind == "local":
+        return (f"{label}: connecting to the btf server's Prefect API at {server} and its local "
                 f"Dask cluster (or starting one: {size}; profile {profile.path}) ...")
-    api = (f"connecting to the Prefect API at {url} and starting" if url
+    api = (f"connecting to the Prefect API at {url or server} and" if url or server
            else "starting a local Prefect API and")
-    return f"{label}: {api} a {cluster.get('kind', 'local')} Dask cluster ({size}; profile {profile.path}) ..."
+    if kind == "address":
+        return f"{label}: {api} connecting to the Dask scheduler {size} (profile {profile.path}) ..."
+    api = f"{api} starting" if url or server else api
+    return f"{label}: {api} a {kind} Dask cluster ({size}; profile {profile.path}) ..."
 
 
 def _main(args: argparse.Namespace) -> int:
     command = COMMANDS[args.command]
     info = command.on_cluster(args) and not args.quiet
     if info:                           # within a second of the start, before anything slow is imported
-        say(f"{_label(args)}: checking the inputs ...")
+        forked = (" (in a process forked by the btf server's command runner, imports done)"
+                  if os.environ.get(CHILD_ENV) else "")
+        say(f"{_label(args)}: checking the inputs{forked} ...")
     prepared = _preflight(args, command)
     if not command.on_cluster(args):
         return command.run(args)  # in this process: sample, plan, render, validate, export-exr, ...
@@ -701,10 +731,11 @@ def _main(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     with runtime(prepared["profile"]) as (profile, url, client):
         if info:
-            dashboard = f", dashboard {client.dashboard_link}" if profile.cluster.get("dashboard") else ""
-            whose = " (the btf server's)" if client.cluster is None else ""
+            from flows.clusters import describe
+
+            whose = " (the btf server's)" if client.cluster is None and profile.kind == "local" else ""
             say(f"{_label(args)}: Prefect API {url} and Dask cluster {client.scheduler.address}{whose} ready after "
-                f"{time.perf_counter() - start:.1f} s{dashboard}")
+                f"{time.perf_counter() - start:.1f} s ({describe(profile, client)})")
         summary = command.flow(args, client.scheduler.address, prepared)
     print(json.dumps({**summary, "seconds": round(time.perf_counter() - start, 2)}, indent=2))
     return 0

@@ -23,8 +23,8 @@ import sys
 import threading
 from pathlib import Path
 
-from flows.runtime import (_close_quietly, _quiet_before_prefect, cluster_settings, load_profile, start_cluster,
-                           worker_environ)
+from flows.runtime import (DEFAULT_PROFILE, _close_quietly, _quiet_before_prefect, cluster_settings, load_profile,
+                           start_cluster, worker_environ)
 from flows.server import _write_state
 
 
@@ -39,6 +39,9 @@ def serve(state: Path, prefect_url: str, profile_path: str | None = None) -> Non
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
     profile = load_profile(profile_path)
+    if profile.kind != "local":  # other kinds start their cluster per run (docs/clusters.md)
+        print(f"{profile.path}: a btf server keeps a local cluster only; it starts {DEFAULT_PROFILE}'s", flush=True)
+        profile = load_profile(DEFAULT_PROFILE)
     _quiet_before_prefect()  # the same worker environment a command's runtime() computes
     environ = worker_environ(prefect_url)
     cluster = start_cluster(profile, environ)

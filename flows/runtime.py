@@ -11,23 +11,22 @@ the Dask workers, so that no worker starts a server of its own
 from __future__ import annotations
 
 import contextlib
-import ipaddress
 import logging
 import os
 import sys
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator
 
-import yaml
 from distributed import WorkerPlugin
 
+# the profile names other modules import from here (flows.cli, flows.cluster_service, tests, benchmarks)
+from flows.profiles import (CLUSTER_KEYS, DEFAULT_PROFILE, PREFECT_KEYS, Profile, ProfileError,  # noqa: F401
+                            dashboard_address, exposure_warnings, load_profile)
 from flows.server import LOOPBACK, RuntimeUnavailable, running_server  # noqa: F401  (RuntimeUnavailable: re-exported)
 
-DEFAULT_PROFILE = Path(__file__).resolve().parents[1] / "infra" / "local.yaml"
 
 #: Environment every Dask worker process starts with: one thread per library
 #: (parallelism comes from Dask), no huge-page hint, and a fixed glibc mmap
@@ -51,55 +50,6 @@ WORKER_ENVIRON = {
 }
 
 
-class ProfileError(ValueError):
-    """An execution profile is missing, not YAML, or names a key, type or cluster kind that does not
-    exist; the one-line message names the file and the key and says what is allowed (bad input: the
-    CLI exits ``EXIT_BAD_INPUT`` before Prefect or a cluster starts)."""
-
-
-@dataclass(frozen=True)
-class Profile:
-    """A parsed and validated execution profile (see ``infra/local.yaml``); build it with
-    :func:`load_profile`, which refuses what a cluster kind does not know."""
-
-    path: str
-    cluster: dict[str, Any] = field(default_factory=dict)
-    prefect: dict[str, Any] = field(default_factory=dict)
-
-
-_INT = (int,)
-_NUMBER = (int, float)
-_STR = (str,)
-_BOOL = (bool,)
-_TYPE_NAMES = {int: "an integer", float: "a number", str: "a string", bool: "true or false", type(None): "null"}
-
-#: The keys of a profile's ``cluster:`` section, per cluster kind, with the types their values may have.
-#: A later cluster kind (SLURM, Kubernetes) adds its row here and its starter in ``_CLUSTER_STARTERS``;
-#: ``infra/local.yaml`` explains each key of the ``local`` kind.
-CLUSTER_KEYS: dict[str, dict[str, tuple[type, ...]]] = {
-    "local": {
-        "kind": _STR,
-        "n_workers": _INT,
-        "threads_per_worker": _INT,
-        "memory_limit": (str, int),       # "4GiB", bytes, or "auto"
-        "processes": _BOOL,
-        "dashboard": _BOOL,
-        "host": _STR,                     # interface of the scheduler, nannies and workers [127.0.0.1]
-        "dashboard_address": _STR,        # host:port of the scheduler's HTTP server [<host>:8787 or :0]
-    },
-}
-
-#: The keys of a profile's ``prefect:`` section (every cluster kind).
-PREFECT_KEYS: dict[str, tuple[type, ...]] = {
-    "api_url": (str, type(None)),
-    "startup_timeout_s": _NUMBER,
-}
-
-#: ``LOOPBACK`` (from :mod:`flows.server`): where a default run listens: every socket (scheduler, its HTTP
-#: server, nannies, workers, dashboard; the temporary Prefect server and the ``btf server`` bind 127.0.0.1
-#: by themselves) stays on this machine (docs/decisions.md).
-
-
 #: Errors that mean bad input or a refused output (the message says what to fix): running the stage
 #: again cannot help, so a stage's retry is kept for the unexpected (a lost worker, a full disk).
 BAD_INPUT_ERRORS = (ValueError, FileExistsError, FileNotFoundError)
@@ -119,165 +69,6 @@ def retry_unless_bad_input(task: Any, task_run: Any, state: Any) -> bool:
 #: ``@task(**RETRY_ONCE)``: a stage's one retry resumes it (finished views are skipped); bad input is
 #: not computed twice.
 RETRY_ONCE: dict[str, Any] = {"retries": 1, "retry_condition_fn": retry_unless_bad_input}
-
-
-def _yaml_problem(exc: yaml.YAMLError) -> str:
-    """One line for a YAML error: its problem and where (PyYAML's own text spans several lines)."""
-    problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
-    mark = getattr(exc, "problem_mark", None)
-    where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
-    return " ".join(f"{where}{problem}".split())
-
-
-def _check_section(path: Path, section: str, values: Any, allowed: dict[str, tuple[type, ...]],
-                   what: str) -> dict[str, Any]:
-    if values is None:
-        return {}
-    if not isinstance(values, dict):
-        raise ProfileError(f"execution profile {path}: '{section}' must be a mapping of keys "
-                           f"({', '.join(allowed)}), not {type(values).__name__}")
-    for key, value in values.items():
-        if key not in allowed:
-            raise ProfileError(f"execution profile {path}: unknown key '{section}.{key}'{what}; "
-                               f"allowed keys: {', '.join(allowed)}")
-        types = allowed[key]
-        if not isinstance(value, types) or (isinstance(value, bool) and bool not in types):
-            expected = " or ".join(_TYPE_NAMES[t] for t in types if not (t is int and float in types))
-            raise ProfileError(f"execution profile {path}: '{section}.{key}' must be {expected}, "
-                               f"not {value!r} ({type(value).__name__})")
-    return dict(values)
-
-
-def _check_values(path: Path, cluster: dict[str, Any], prefect: dict[str, Any]) -> None:
-    for key in ("n_workers", "threads_per_worker"):
-        if key in cluster and cluster[key] < 1:
-            raise ProfileError(f"execution profile {path}: 'cluster.{key}' must be at least 1, not {cluster[key]}")
-    if "memory_limit" in cluster and cluster["memory_limit"] != "auto":
-        from dask.utils import parse_bytes
-
-        try:
-            if parse_bytes(cluster["memory_limit"]) <= 0:
-                raise ValueError("not positive")
-        except (ValueError, TypeError):
-            raise ProfileError(f"execution profile {path}: 'cluster.memory_limit' must be a size like 4GiB "
-                               f"(per worker), a number of bytes or auto, not {cluster['memory_limit']!r}") from None
-    if "startup_timeout_s" in prefect and not prefect["startup_timeout_s"] > 0:
-        raise ProfileError(f"execution profile {path}: 'prefect.startup_timeout_s' must be a number of "
-                           f"seconds above 0, not {prefect['startup_timeout_s']!r}")
-
-
-def load_profile(path: str | os.PathLike | None = None) -> Profile:
-    """Read and validate an execution profile; ``None`` means ``$BTF_CLUSTER_CONFIG`` or the default.
-
-    This is the one place a profile is checked: every key must exist for its section and cluster kind
-    (``CLUSTER_KEYS``, ``PREFECT_KEYS``) and have a value of its type, so that a typo is named before
-    Prefect or a cluster starts instead of reaching ``LocalCluster``.
-
-    Raises
-    ------
-    ProfileError
-        The file is missing or unreadable, not YAML (``!!python/...`` tags included), or names an
-        unknown section, key or cluster kind, or a value of the wrong type; the message is one line
-        that names the file and the key.
-    """
-    path = Path(path or os.environ.get("BTF_CLUSTER_CONFIG") or DEFAULT_PROFILE)
-    try:
-        data = yaml.safe_load(path.read_text())
-    except FileNotFoundError:
-        raise ProfileError(
-            f"execution profile {path} does not exist; pass --cluster with a file "
-            f"shaped like {DEFAULT_PROFILE}"
-        ) from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ProfileError(f"execution profile {path} cannot be read: {exc}; pass --cluster with a readable "
-                           "YAML file") from None
-    except yaml.YAMLError as exc:
-        raise ProfileError(f"execution profile {path} is not valid YAML ({_yaml_problem(exc)}); a profile holds "
-                           f"plain keys and values only, shaped like {DEFAULT_PROFILE}") from None
-    data = {} if data is None else data
-    if not isinstance(data, dict):
-        raise ProfileError(f"execution profile {path}: expected a mapping with 'cluster' and 'prefect' "
-                           f"sections, not {type(data).__name__}")
-    unknown = [key for key in data if key not in ("cluster", "prefect")]
-    if unknown:
-        raise ProfileError(f"execution profile {path}: unknown section '{unknown[0]}'; "
-                           "allowed sections: cluster, prefect")
-    raw_cluster = data.get("cluster") or {}
-    kind = raw_cluster.get("kind", "local") if isinstance(raw_cluster, dict) else "local"
-    if not isinstance(kind, str) or kind not in CLUSTER_KEYS:
-        raise ProfileError(
-            f"execution profile {path}: cluster kind {kind!r} is not supported yet "
-            f"(supported: {', '.join(map(repr, CLUSTER_KEYS))}); "
-            "SLURM and Kubernetes profiles arrive with the cluster issue"
-        )
-    cluster = _check_section(path, "cluster", data.get("cluster"), CLUSTER_KEYS[kind],
-                             f" for cluster kind {kind!r}")
-    prefect = _check_section(path, "prefect", data.get("prefect"), PREFECT_KEYS, "")
-    _check_values(path, cluster, prefect)
-    return Profile(str(path), cluster, prefect)
-
-
-def _host_of(address: str) -> str:
-    """The host of ``tcp://HOST``, ``HOST:PORT``, ``[V6]:PORT`` or ``:PORT`` ('' means every interface)."""
-    address = address.split("://", 1)[-1]
-    if address.startswith("["):
-        return address[1:].split("]", 1)[0]
-    if address.count(":") == 1:
-        return address.split(":", 1)[0]
-    return address
-
-
-def _is_loopback(host: str) -> bool:
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:  # '' (every interface), 0.0.0.0 parses; a host name or interface IP may be public
-        return False
-
-
-def exposure_warnings(profile: Profile) -> list[str]:
-    """One-line warnings for the sockets of ``profile``'s cluster that listen beyond this machine without TLS.
-
-    A default profile binds everything to 127.0.0.1 and gets none. A profile that sets ``cluster.host``
-    or ``cluster.dashboard_address`` off the loopback asked for it explicitly; it still gets a warning
-    unless the Dask configuration sets up TLS (``distributed.comm.require-encryption`` or a
-    ``tls://`` host for the scheduler and workers, ``distributed.scheduler.dashboard.tls.cert`` for the
-    HTTP server), because the scheduler runs any code sent to it and its HTTP server serves metrics,
-    worker addresses and logs, both without authentication.
-    """
-    import dask
-
-    spec = profile.cluster
-    warnings = []
-    host = spec.get("host", LOOPBACK)
-    comm_tls = host.startswith("tls://") or bool(dask.config.get("distributed.comm.require-encryption", False))
-    if not _is_loopback(_host_of(host)) and not comm_tls:
-        warnings.append(
-            f"btf: warning: {profile.path}: the Dask scheduler and workers listen on "
-            f"{_host_of(host) or 'every interface'} (cluster.host) without TLS, so anyone who reaches this "
-            f"machine can run code on them; use host {LOOPBACK} or set distributed.comm.require-encryption "
-            "and distributed.comm.tls.* in the Dask config"
-        )
-    http = _dashboard_address(spec)
-    http_tls = bool(dask.config.get("distributed.scheduler.dashboard.tls.cert", None))
-    if not _is_loopback(_host_of(http)) and not http_tls:
-        warnings.append(
-            f"btf: warning: {profile.path}: the Dask scheduler's HTTP server (dashboard, /metrics, worker "
-            f"addresses and logs) listens on {http} without TLS or authentication; use "
-            f"dashboard_address {LOOPBACK}:8787 or set distributed.scheduler.dashboard.tls.cert in the Dask config"
-        )
-    return warnings
-
-
-def _dashboard_address(spec: dict[str, Any]) -> str:
-    """``host:port`` of the scheduler's HTTP server: the profile's, else the cluster host on 8787 (dashboard) or
-    a random port (it always serves /metrics); never the empty host, which distributed binds to 0.0.0.0."""
-    if "dashboard_address" in spec:
-        return spec["dashboard_address"]
-    host = _host_of(spec.get("host", LOOPBACK)) or LOOPBACK
-    host = f"[{host}]" if ":" in host else host
-    return f"{host}:{8787 if spec.get('dashboard', False) else 0}"
 
 
 #: Prefect loggers that report a failed task or flow run ("Task run ... Finished in state Failed",
@@ -483,14 +274,15 @@ def worker_environ(prefect_url: str | None) -> dict[str, str]:
 def start_cluster(profile: Profile, environ: dict[str, str]) -> Any:
     """Start the profile's Dask cluster, its workers with ``environ`` (:func:`worker_environ`).
 
-    Every socket of the cluster binds ``cluster.host`` (default 127.0.0.1), the scheduler's HTTP server
+    The starter is the kind's (``_CLUSTER_STARTERS``; ``local`` here, the others in :mod:`flows.clusters`).
+    Every socket of a local cluster binds ``cluster.host`` (default 127.0.0.1), the scheduler's HTTP server
     ``cluster.dashboard_address`` (default the same host); a profile that binds beyond this machine
     without TLS gets one warning line per socket kind on stderr (:func:`exposure_warnings`). Close it
     with :func:`_close_quietly`, which does so without Dask's shutdown warnings.
     """
     import dask
 
-    start = _CLUSTER_STARTERS[profile.cluster.get("kind", "local")]  # load_profile refused other kinds
+    start = _CLUSTER_STARTERS[profile.kind]  # load_profile refused other kinds; `address` starts none
     for line in exposure_warnings(profile):
         print(line, file=sys.stderr)
     # distributed's nanny applies pre-spawn-environ to this process's os.environ too:
@@ -500,7 +292,7 @@ def start_cluster(profile: Profile, environ: dict[str, str]) -> Any:
         with dask.config.set({"distributed.nanny.pre-spawn-environ": environ,
                               "distributed.worker.daemon": False}):
             try:
-                return start(profile.cluster)
+                return start(profile.cluster, environ)
             except Exception as exc:
                 raise RuntimeUnavailable(f"could not start the Dask cluster of {profile.path}: {exc}") from exc
     finally:
@@ -511,24 +303,58 @@ def start_cluster(profile: Profile, environ: dict[str, str]) -> Any:
                 os.environ[key] = value
 
 
+def _connect(profile: Profile, environ: dict[str, str]) -> Any:
+    """A client of the running scheduler of an ``address`` profile, once it has a worker; one warning line
+    on stderr when its workers lack part of ``environ`` (their owner starts them with it: docs/clusters.md)."""
+    from distributed import Client
+
+    from flows.clusters import environ_differences, security_of
+
+    for line in exposure_warnings(profile):
+        print(line, file=sys.stderr)
+    address, timeout = profile.cluster["address"], float(profile.cluster.get("timeout_s", 60))
+    try:
+        client = Client(address, security=security_of(profile.cluster), timeout=f"{timeout}s")
+    except Exception as exc:
+        raise RuntimeUnavailable(f"could not connect to the Dask scheduler {address} of {profile.path}: {exc}") from exc
+    try:
+        client.wait_for_workers(1, timeout=timeout)
+        client.register_plugin(WorkerSetup(environ), name="btf-worker-setup")
+        lacking = sorted({item for items in client.run(environ_differences, environ).values() for item in items})
+    except Exception as exc:
+        client.close()
+        raise RuntimeUnavailable(f"the Dask scheduler {address} of {profile.path} has no usable worker within "
+                                 f"{timeout:.0f} s: {exc}") from exc
+    if lacking:
+        print(f"btf: warning: the workers of {address} did not start with {' '.join(lacking)}; btf set the thread "
+              "counts and Prefect settings in them, but not the memory settings: start them with that environment "
+              "(docs/clusters.md, 'address')", file=sys.stderr)
+    return client
+
+
 @contextlib.contextmanager
 def dask_client(profile: Profile, prefect_url: str | None = None) -> Iterator[Any]:
     """Yield a ``distributed.Client`` of the profile's Dask cluster, with :func:`WorkerSetup` registered.
 
-    The cluster is the one a running ``btf server`` keeps (:func:`flows.server.server_cluster`) where
-    it was started with this run's profile, worker environment and code; else one started here
-    (:func:`start_cluster`) and closed on exit, the client first (:func:`_close_quietly`).
+    An ``address`` profile's client connects to its running scheduler (:func:`_connect`). A ``local``
+    profile's is the cluster a running ``btf server`` keeps (:func:`flows.server.server_cluster`) where it
+    was started with this run's profile, worker environment and code; else, and for every other kind,
+    one started here (:func:`start_cluster`) and closed on exit, the client first (:func:`_close_quietly`).
     """
     from distributed import Client
 
     from flows.server import server_cluster
 
     environ = worker_environ(prefect_url)
-    address = server_cluster(cluster_settings(profile, environ))
-    if address:
-        client = Client(address, timeout="10s")
+    if profile.kind == "address":
+        client = _connect(profile, environ)
+    else:
+        address = server_cluster(cluster_settings(profile, environ)) if profile.kind == "local" else None
+        client = Client(address, timeout="10s") if address else None
+    if client is not None:
         try:
-            client.register_plugin(WorkerSetup(), name="btf-worker-setup")
+            if profile.kind != "address":  # _connect registered it before checking the workers' environment
+                client.register_plugin(WorkerSetup(environ), name="btf-worker-setup")
             yield client
         finally:
             with contextlib.suppress(Exception):
@@ -537,8 +363,8 @@ def dask_client(profile: Profile, prefect_url: str | None = None) -> Iterator[An
     cluster = start_cluster(profile, environ)
     client = None
     try:
-        client = Client(cluster)
-        client.register_plugin(WorkerSetup(), name="btf-worker-setup")
+        client = Client(cluster)  # with the cluster's security (TLS), where it has one
+        client.register_plugin(WorkerSetup(environ), name="btf-worker-setup")
         yield client
     finally:
         _close_quietly(client, cluster)
@@ -549,20 +375,15 @@ def cluster_settings(profile: Profile, environ: dict[str, str]) -> dict[str, Any
     workers' environment, this interpreter and the pipeline's code (each ``.py`` file's size and
     modification time: workers import it once, when they start). A ``btf server``'s cluster is used
     only by a run whose settings equal the ones it was started with."""
-    import hashlib
+    from flows.server import code_version
 
-    root = Path(__file__).resolve().parents[1]
-    code = hashlib.sha256()
-    for package in ("btfcore", "tasks", "flows"):
-        for path in sorted((root / package).rglob("*.py")):
-            stat = path.stat()
-            code.update(f"{path.relative_to(root)}:{stat.st_size}:{stat.st_mtime_ns};".encode())
     return {"cluster": dict(profile.cluster), "environ": dict(sorted(environ.items())),
-            "python": sys.executable, "code": code.hexdigest()[:16]}
+            "python": sys.executable, "code": code_version()}
 
 
-def _local_cluster(spec: dict[str, Any]) -> Any:
-    """``distributed.LocalCluster`` of a ``kind: local`` profile section (keys: ``CLUSTER_KEYS['local']``)."""
+def _local_cluster(spec: dict[str, Any], environ: dict[str, str]) -> Any:
+    """``distributed.LocalCluster`` of a ``kind: local`` profile section (keys: ``CLUSTER_KEYS['local']``); its
+    nannies give the workers ``environ`` (``distributed.nanny.pre-spawn-environ``, set by :func:`start_cluster`)."""
     from distributed import LocalCluster
 
     dashboard = bool(spec.get("dashboard", False))
@@ -575,14 +396,26 @@ def _local_cluster(spec: dict[str, Any]) -> Any:
         host=spec.get("host"),
         # the scheduler always serves HTTP (/metrics, worker addresses, logs): on the cluster's host, on
         # 8787 with the dashboard, else on a random port
-        dashboard_address=_dashboard_address(spec),
+        dashboard_address=dashboard_address(spec),
         scheduler_kwargs={"dashboard": dashboard},
         silence_logs=logging.getLogger("distributed").getEffectiveLevel(),   # WARNING; INFO with btf --verbose
     )
 
 
-#: How each cluster kind of ``CLUSTER_KEYS`` starts: its profile section -> a ``distributed`` cluster.
-_CLUSTER_STARTERS = {"local": _local_cluster}
+def _starter(name: str) -> Callable[[dict[str, Any], dict[str, str]], Any]:
+    """A starter of :mod:`flows.clusters`, imported when it starts (dask_jobqueue, dask_kubernetes)."""
+    def start(spec: dict[str, Any], environ: dict[str, str]) -> Any:
+        from flows import clusters
+
+        return getattr(clusters, name)(spec, environ)
+
+    return start
+
+
+#: How each cluster kind of ``CLUSTER_KEYS`` starts: ``(profile section, worker environment)`` -> a
+#: ``distributed`` cluster. ``address`` starts none (:func:`_connect`).
+_CLUSTER_STARTERS = {"local": _local_cluster, "slurm": _starter("jobqueue_cluster"),
+                     "pbs": _starter("jobqueue_cluster"), "kubernetes": _starter("kubernetes_cluster")}
 
 #: distributed's loggers that report, at WARNING, a worker process killed or a task cancelled while
 #: closing (``Worker process still alive after 4.0 seconds, killing``, ``Async instruction ... cancelled``).
@@ -635,7 +468,9 @@ def _close_quietly(client: Any, cluster: Any) -> None:
                 client.close(timeout=10)
         if distributed_logger.getEffectiveLevel() == logging.WARNING:
             distributed_logger.setLevel(logging.ERROR)
-        if idle:
+        from distributed import LocalCluster
+
+        if idle and isinstance(cluster, LocalCluster):  # a job-queue cluster's "workers" are its jobs
             with contextlib.suppress(Exception):
                 cluster.sync(_close_workers, cluster, IDLE_WORKER_CLOSE_S,
                              callback_timeout=IDLE_WORKER_CLOSE_S + 10)
@@ -645,21 +480,37 @@ def _close_quietly(client: Any, cluster: Any) -> None:
 
 
 class WorkerSetup(WorkerPlugin):
-    """Dask worker plugin: pins OpenCV to one thread (parallelism comes from Dask) and imports the
-    pipeline's numerical stack when a worker starts, so that the first task of a run does not pay
-    for it (about a second per worker on two cores; docs/architecture.md, "Execution")."""
+    """Dask worker plugin: pins BLAS (threadpoolctl), OpenCV and torch to one thread (parallelism comes from
+    Dask) and imports the pipeline's numerical stack when a worker starts, so that the first task of a run
+    does not pay for it (about a second per worker on two cores; docs/architecture.md, "Execution").
+
+    ``environ`` (:func:`worker_environ`): the keys a worker reads when it uses them
+    (``flows.clusters.LATE_ENVIRON_KEYS``: the Prefect API, log levels, ``BTF_SHARED_DATA``) are set in its
+    ``os.environ``, for the workers of an ``address`` profile, which someone else started; the thread
+    counts are set here for them too, but the malloc settings only take effect at process start.
+    """
 
     modules = ("tasks.ingest", "tasks.simulate", "tasks.resample")
+
+    def __init__(self, environ: dict[str, str] | None = None):
+        self.environ = dict(environ or {})
 
     def setup(self, worker: Any) -> None:
         import importlib
 
         import cv2
+        from threadpoolctl import threadpool_limits
 
+        from flows.clusters import LATE_ENVIRON_KEYS
+
+        os.environ.update({key: value for key, value in self.environ.items() if key in LATE_ENVIRON_KEYS})
         cv2.setNumThreads(1)
+        threadpool_limits(1)
         quiet_task_failures()
         for name in self.modules:
             importlib.import_module(name)
+        if "torch" in sys.modules:
+            sys.modules["torch"].set_num_threads(1)
 
 
 @contextlib.contextmanager
@@ -681,8 +532,38 @@ def runtime(profile: Profile | str | os.PathLike | None = None) -> Iterator[tupl
         with _starting_prefect_api(profile) as (url, ready, lasting), dask_client(profile, url) as client:
             quieted.result()
             url = ready()
-            with temporary_settings_of_run(url, lasting):
+            with temporary_settings_of_run(url, lasting), _recorded_in_reports(profile):
                 yield profile, url, client
+
+
+@contextlib.contextmanager
+def _recorded_in_reports(profile: Profile) -> Iterator[None]:
+    """Every ``report.json`` written during the run records ``profile`` (``tasks.report.RUN_PROFILE``)."""
+    from tasks import report
+
+    saved = dict(report.RUN_PROFILE)
+    report.RUN_PROFILE.clear()
+    report.RUN_PROFILE.update(profile.record())
+    try:
+        yield
+    finally:
+        report.RUN_PROFILE.clear()
+        report.RUN_PROFILE.update(saved)
+
+
+def cluster_spec(path: str | os.PathLike) -> str:
+    """``btf cluster spec PROFILE``: the DaskCluster resource of a ``kubernetes`` profile as YAML, its
+    containers' env the worker environment with the profile's Prefect API (:func:`worker_environ`).
+
+    Raises
+    ------
+    ProfileError, ValueError
+        The profile is bad or not of kind ``kubernetes`` (bad input).
+    """
+    from flows.clusters import cluster_spec_yaml
+
+    profile = load_profile(path)
+    return cluster_spec_yaml(profile, worker_environ(profile.prefect.get("api_url")))
 
 
 #: Prefect's flow-run heartbeat thread sleeps in whole seconds and is joined when a flow run ends, so

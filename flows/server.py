@@ -7,7 +7,9 @@ it); ``flows.runtime.prefect_api`` then uses it instead of starting a temporary 
 execution profile's ``prefect.api_url`` or ``PREFECT_API_URL`` names another API. A state file whose
 process is gone or whose URL does not answer is ignored, with one line saying so
 (docs/architecture.md, "Execution"). Beside it, :mod:`flows.cluster_service` keeps the profile's
-Dask cluster, which :func:`server_cluster` offers to runs started with the same settings.
+Dask cluster, which :func:`server_cluster` offers to runs started with the same settings, and
+:mod:`flows.command_runner` keeps a process with the pipeline imported, to which :func:`forward`
+hands a command.
 
 This module starts only processes and reads only its state files: it imports no Prefect or Dask
 code, so that ``btf --help`` stays fast.
@@ -19,11 +21,14 @@ import argparse
 import contextlib
 import datetime
 import json
+import hashlib
 import os
 import signal
 import socket
+import struct
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -31,15 +36,18 @@ from typing import Any
 #: Where every socket of a default run listens, the ``btf server`` included: this machine only.
 LOOPBACK = "127.0.0.1"
 
-SERVER_HELP = ("A Prefect server and a Dask cluster that stay up between commands, on 127.0.0.1: `start` starts "
-               "both (the cluster of the execution profile, --cluster or the default) and prints their addresses; "
-               "every later computing command reports to that server instead of starting a temporary one, "
-               "unless the profile's prefect.api_url or PREFECT_API_URL names another, and runs on that cluster "
-               "where its profile, log level and the pipeline's code are the ones the cluster was started with "
-               "(else it starts its own and says why). `status` says whether they run and answer, `stop` stops "
-               "both. Their addresses and process ids are kept in $XDG_STATE_HOME/btf-pipeline/server.json and "
-               "cluster.json (default ~/.local/state/...), their logs beside them. The runs are kept in Prefect's "
-               "database (PREFECT_HOME, ~/.prefect) and shown by its UI at the URL without /api.")
+SERVER_HELP = ("A Prefect server, a Dask cluster and a process with the pipeline imported, kept up between "
+               "commands on 127.0.0.1. `start` starts the three (the cluster of the execution profile: --cluster "
+               "or the default) and prints their addresses. Every later computing command then reports to that "
+               "server instead of starting a temporary one (unless the profile's prefect.api_url or "
+               "PREFECT_API_URL names another); runs on that cluster where its profile, log level and the "
+               "pipeline's code are the ones the cluster was started with (else it starts its own and says why); "
+               "and, from a shell with the same PREFECT_*/DASK_* settings, runs in a fork of the imported "
+               "process, which saves the imports' seconds (not with --verbose, --log-level, --quiet or "
+               "BTF_NO_RUNNER=1). `status` says whether they run, `stop` stops them and the commands running in "
+               "them. Their addresses and process ids are in $XDG_STATE_HOME/btf-pipeline/ (server.json, "
+               "cluster.json, runner.json; default ~/.local/state/...), their logs beside them. The runs are kept "
+               "in Prefect's database (PREFECT_HOME, ~/.prefect) and shown by its UI at the URL without /api.")
 
 
 class RuntimeUnavailable(RuntimeError):
@@ -102,22 +110,56 @@ _SETTING_NAMES = {"cluster": "cluster section of the profile", "environ": "worke
                   "Prefect API, BTF_SHARED_DATA)", "python": "Python interpreter", "code": "pipeline code"}
 
 
+def code_version() -> str:
+    """A hash of the size and modification time of every ``.py`` file of btfcore, tasks and flows: a
+    process that imported the pipeline earlier (the ``btf server``'s workers and command runner) holds
+    the code of that moment, and serves a command only while this hash is unchanged."""
+    import hashlib
+
+    root = Path(__file__).resolve().parents[1]
+    code = hashlib.sha256()
+    for package in ("btfcore", "tasks", "flows"):
+        for path in sorted((root / package).rglob("*.py")):
+            stat = path.stat()
+            code.update(f"{path.relative_to(root)}:{stat.st_size}:{stat.st_mtime_ns};".encode())
+    return code.hexdigest()[:16]
+
+
 def cluster_state_file(path: Path | None = None) -> Path:
     """The state file of the ``btf server``'s Dask cluster: ``cluster.json`` beside :func:`state_file`."""
     return (path or state_file()).with_name("cluster.json")
 
 
-def _cluster_status(path: Path | None = None) -> dict[str, Any] | None:
-    """The cluster state file's content with ``status`` running or stale (``reason``); None without one."""
-    cluster_path = cluster_state_file(path)
-    state = _read_state(cluster_path)
+#: The module of the ``btf server``'s command runner (a third process, :mod:`flows.command_runner`).
+COMMAND_RUNNER = "flows.command_runner"
+
+
+def runner_state_file(path: Path | None = None) -> Path:
+    """The state file of the ``btf server``'s command runner: ``runner.json`` beside :func:`state_file`."""
+    return (path or state_file()).with_name("runner.json")
+
+
+def _service_status(state_path: Path, module: str, keys: tuple[str, ...]) -> dict[str, Any] | None:
+    """``keys`` of the state file of a ``btf server`` process running ``module``, its state file, log and
+    ``status``: running, or stale (its process is gone; ``reason``); None without a state file."""
+    state = _read_state(state_path)
     if state is None:
         return None
-    info = {key: state.get(key) for key in ("address", "pid", "profile", "log")}
-    if not _runs(state.get("pid"), CLUSTER_SERVICE.encode()) or not isinstance(state.get("address"), str):
-        return {**info, "state_file": str(cluster_path), "status": "stale",
-                "reason": f"process {state.get('pid')} is not running"}
-    return {**info, "state_file": str(cluster_path), "status": "running", "settings": state.get("settings", {})}
+    info = {**{key: state.get(key) for key in keys}, "state_file": str(state_path),
+            "log": str(state_path.with_suffix(".log"))}
+    if not _runs(state.get("pid"), module.encode()):
+        return {**info, "status": "stale", "reason": f"process {state.get('pid')} is not running"}
+    return {**info, "status": "running"}
+
+
+def _cluster_status(path: Path | None = None) -> dict[str, Any] | None:
+    """The server's Dask cluster (address, process, profile, settings) and its status."""
+    return _service_status(cluster_state_file(path), CLUSTER_SERVICE, ("address", "pid", "profile", "settings"))
+
+
+def _runner_status(path: Path | None = None) -> dict[str, Any] | None:
+    """The server's command runner (process, socket) and its status."""
+    return _service_status(runner_state_file(path), COMMAND_RUNNER, ("pid", "socket"))
 
 
 def server_cluster(settings: dict[str, Any], path: Path | None = None) -> str | None:
@@ -134,7 +176,7 @@ def server_cluster(settings: dict[str, Any], path: Path | None = None) -> str | 
         print(f"btf: ignoring the btf server's Dask cluster ({status['state_file']}): {status['reason']} "
               "(`btf server stop` and `btf server start` restart it)", file=sys.stderr)
         return None
-    differ = [_SETTING_NAMES.get(key, key) for key in settings if status["settings"].get(key) != settings[key]]
+    differ = [_SETTING_NAMES.get(key, key) for key in settings if (status["settings"] or {}).get(key) != settings[key]]
     if differ:
         print(f"btf: not using the btf server's Dask cluster {status['address']}: this run's "
               f"{' and '.join(differ)} {'differ' if len(differ) > 1 else 'differs'} from the ones it was started with, so this run starts its own "
@@ -174,7 +216,9 @@ def server_status(path: Path | None = None) -> dict[str, Any]:
     cluster = _cluster_status(path)
     if cluster is not None:
         cluster.pop("settings", None)
-    extra = {"cluster": cluster} if cluster is not None else {}
+    runner = _runner_status(path)
+    extra = {**({"cluster": cluster} if cluster is not None else {}),
+             **({"runner": runner} if runner is not None else {})}
     if state is None:
         return {"status": "stopped", "state_file": str(path), **extra}
     info = {**state, "state_file": str(path), **extra}
@@ -232,11 +276,13 @@ def _log_tail(log: Path, n_lines: int = 5) -> str:
     return ""
 
 
-def _spawn(argv: list[str], log: Path, cwd: Path) -> subprocess.Popen:
-    """Start ``argv`` in its own session (it outlives this process and a terminal's Ctrl-C), logging to ``log``."""
+def _spawn(argv: list[str], log: Path, cwd: Path, environ: dict[str, str] | None = None) -> subprocess.Popen:
+    """Start ``argv`` in its own session (it outlives this process and a terminal's Ctrl-C), logging to
+    ``log``, with ``environ`` (default :func:`_server_environ`)."""
     with open(log, "ab") as log_file:
         return subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=log_file, stderr=subprocess.STDOUT,
-                                env=_server_environ(), start_new_session=True, cwd=str(cwd))
+                                env=_server_environ() if environ is None else environ, start_new_session=True,
+                                cwd=str(cwd))
 
 
 def _wait_for(ready: Any, process: subprocess.Popen, deadline: float, what: str, log: Path) -> None:
@@ -254,12 +300,14 @@ def _wait_for(ready: Any, process: subprocess.Popen, deadline: float, what: str,
 def start_server(timeout: float = 90, path: Path | None = None, profile: str | None = None) -> dict[str, Any]:
     """Start a ``btf server`` (or find the one running) and return its status.
 
-    The server is two processes, each in its own session and logging beside the state file: ``prefect
-    server start`` bound to 127.0.0.1 on a free port (``server.log``), and the Dask cluster of the
-    execution profile ``profile`` (default: ``$BTF_CLUSTER_CONFIG`` or ``infra/local.yaml``), started
-    by :mod:`flows.cluster_service` at the same time, its workers reporting to that server
-    (``cluster.log``). Each state file is written once its process answers. A server that runs without
-    its cluster (it exited) gets a new one.
+    The server is three processes, each in its own session and logging beside the state file, started
+    at the same time: ``prefect server start`` bound to 127.0.0.1 on a free port (``server.log``); the
+    Dask cluster of the execution profile ``profile`` (default: ``$BTF_CLUSTER_CONFIG`` or
+    ``infra/local.yaml``), started by :mod:`flows.cluster_service`, its workers reporting to that
+    server (``cluster.log``); and the command runner of :mod:`flows.command_runner`, with this
+    process' environment, so that commands from the same shell match it (``runner.log``). Each state
+    file is written once its process answers. A server that runs without its cluster or runner (one
+    exited) gets a new one.
 
     Raises
     ------
@@ -270,7 +318,8 @@ def start_server(timeout: float = 90, path: Path | None = None, profile: str | N
     path = path or state_file()
     status = server_status(path)
     cluster_running = (status.get("cluster") or {}).get("status") == "running"
-    if status["status"] == "running" and cluster_running:
+    runner_running = (status.get("runner") or {}).get("status") == "running"
+    if status["status"] == "running" and cluster_running and runner_running:
         return {**status, "started_now": False}
     path.parent.mkdir(parents=True, exist_ok=True)
     deadline = time.monotonic() + timeout
@@ -280,12 +329,19 @@ def start_server(timeout: float = 90, path: Path | None = None, profile: str | N
         url = f"http://{LOOPBACK}:{port}/api"
         server = _spawn([sys.executable, "-m", "prefect", "server", "start", "--host", LOOPBACK,
                          "--port", str(port), "--analytics-off"], path.with_name("server.log"), path.parent)
-    cluster_path = cluster_state_file(path)
-    with contextlib.suppress(FileNotFoundError):
-        cluster_path.unlink()  # a stale one
-    cluster_log = path.with_name("cluster.log")
-    cluster = _spawn([sys.executable, "-m", CLUSTER_SERVICE, "--state", str(cluster_path), "--prefect-url", url,
-                      *(["--profile", profile] if profile else [])], cluster_log, Path(__file__).resolve().parents[1])
+    root = Path(__file__).resolve().parents[1]
+    cluster_path, cluster_log, cluster = cluster_state_file(path), path.with_name("cluster.log"), None
+    if not cluster_running:
+        with contextlib.suppress(FileNotFoundError):
+            cluster_path.unlink()  # a stale one
+        cluster = _spawn([sys.executable, "-m", CLUSTER_SERVICE, "--state", str(cluster_path), "--prefect-url",
+                          url, *(["--profile", profile] if profile else [])], cluster_log, root)
+    runner_path, runner_log, runner = runner_state_file(path), path.with_name("runner.log"), None
+    if not runner_running:
+        with contextlib.suppress(FileNotFoundError):
+            runner_path.unlink()
+        runner = _spawn([sys.executable, "-m", COMMAND_RUNNER, "--state", str(runner_path)], runner_log, root,
+                        environ=dict(os.environ))
     try:
         if server is not None:
             _wait_for(lambda: is_healthy(url, timeout=2.0), server, deadline,
@@ -293,10 +349,14 @@ def start_server(timeout: float = 90, path: Path | None = None, profile: str | N
             _write_state(path, {"url": url, "pid": server.pid, "port": int(url.rsplit(":", 1)[1].split("/")[0]),
                                 "host": LOOPBACK, "log": str(path.with_name("server.log")),
                                 "started": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")})
-        _wait_for(lambda: (_cluster_status(path) or {}).get("status") == "running", cluster, deadline,
-                  f"Dask cluster ({CLUSTER_SERVICE})", cluster_log)
+        if cluster is not None:
+            _wait_for(lambda: (_cluster_status(path) or {}).get("status") == "running", cluster, deadline,
+                      f"Dask cluster ({CLUSTER_SERVICE})", cluster_log)
+        if runner is not None:
+            _wait_for(lambda: (_runner_status(path) or {}).get("status") == "running", runner, deadline,
+                      f"command runner ({COMMAND_RUNNER})", runner_log)
     except RuntimeUnavailable:
-        for process in (server, cluster):
+        for process in (server, cluster, runner):
             if process is not None:
                 _stop_pid(process.pid)
         if server is not None:
@@ -328,6 +388,12 @@ def stop_server(path: Path | None = None) -> dict[str, Any]:
     signalling anything.
     """
     path = path or state_file()
+    runner = _read_state(runner_state_file(path))
+    if runner is not None:
+        if _runs(runner.get("pid"), COMMAND_RUNNER.encode()):
+            _stop_pid(runner["pid"])  # and the commands it runs: they are in its process group
+        with contextlib.suppress(FileNotFoundError):
+            runner_state_file(path).unlink()
     cluster = _read_state(cluster_state_file(path))
     if cluster is not None:
         if _runs(cluster.get("pid"), CLUSTER_SERVICE.encode()):
@@ -364,3 +430,75 @@ def run_server(args: argparse.Namespace) -> int:
         result = server_status()
     print(json.dumps(result, indent=2))
     return 0
+
+
+#: Set in a forked child: its ``btf`` does not forward again, and its ready line says where it runs.
+CHILD_ENV = "BTF_RUNNER_CHILD"
+
+_HEADER = struct.Struct("!I")
+
+
+def _environ_key(environ: dict[str, str]) -> str:
+    """Hash of the ``PREFECT_*`` and ``DASK_*`` variables of ``environ`` (values may be secrets: only the hash is kept)."""
+    items = sorted((k, v) for k, v in environ.items() if k.startswith(("PREFECT_", "DASK_")))
+    return hashlib.sha256(json.dumps(items).encode()).hexdigest()[:16]
+
+
+def runner_fingerprint(environ: dict[str, str] | None = None) -> dict[str, str]:
+    """What a command and the runner must share for a forwarded run to import what it would itself."""
+    return {"python": sys.executable, "code": code_version(),
+            "environ": _environ_key(dict(os.environ if environ is None else environ))}
+
+
+def forward(argv: list[str], detail_flags: bool, path: Path | None = None) -> int | None:
+    """Run ``btf argv`` in a child of the ``btf server``'s runner and return its exit status, or None
+    where it cannot be forwarded (no runner, another fingerprint, ``detail_flags`` (``--verbose``,
+    ``--log-level`` or ``--quiet``: they configure logging before Prefect is imported), or
+    ``BTF_NO_RUNNER``), in which case the caller runs the command itself."""
+    if (detail_flags or os.environ.get(CHILD_ENV) or os.environ.get("BTF_NO_RUNNER")
+            or threading.current_thread() is not threading.main_thread()):  # signals are forwarded from there
+        return None
+    try:
+        state = json.loads(runner_state_file(path).read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(state, dict) or state.get("fingerprint") != runner_fingerprint():
+        return None
+    connection = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    try:
+        connection.connect(str(state.get("socket")))
+        request = json.dumps({"argv": list(argv), "cwd": os.getcwd(), "environ": dict(os.environ),
+                              "umask": _umask()}).encode()
+        socket.send_fds(connection, [_HEADER.pack(len(request)) + request], [0, 1, 2])
+        reader = connection.makefile("rb")
+        child = int(reader.readline() or b"0")
+    except (OSError, ValueError):
+        connection.close()
+        return None                                  # nothing ran: run it here
+    if not child:
+        connection.close()
+        return None
+    previous = {sig: signal.signal(sig, lambda sig, _frame: _signal(child, sig))
+                for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
+    try:
+        for line in reader:
+            if line.startswith(b"exit "):
+                return int(line.split()[1])
+        print(f"btf: the run (process {child} of the btf server's command runner) ended without an exit "
+              "status; see the server's log (`btf server status`)", file=sys.stderr)
+        return 1
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        connection.close()
+
+
+def _signal(pid: int, sig: int) -> None:
+    with contextlib.suppress(ProcessLookupError):
+        os.kill(pid, sig)
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask

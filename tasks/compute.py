@@ -40,7 +40,10 @@ def wait_all(futures: Sequence[Any], progress: Progress | None = None,
     share = {f.key: int(w) for f, w in zip(futures, weights)} if weights is not None else {}
     total = sum(share.values()) if weights is not None else len(futures)
     done = 0
-    for future in as_completed(futures):
+    # on the futures' own client loop, not the default client's: a result lost with its worker (a cancelled
+    # Slurm job) resets the future, whose event must belong to the loop that waits on it again
+    loop = futures[0].client.loop if len(futures) else None
+    for future in as_completed(futures, loop=loop):
         future.result()                              # re-raises the worker's error here
         done += share.get(future.key, 1)
         if progress is not None:

@@ -46,9 +46,16 @@ def reused_text(reused: dict[str, Sequence[int]]) -> str:
     return ", ".join(f"{n} of {total} {what.replace('_', ' ')}" for what, (n, total) in reused.items())
 
 
+#: The execution profile of the run in this process (its file and ``cluster:`` section), set by
+#: ``flows.runtime.runtime`` for the run; every report written meanwhile records it (docs/clusters.md).
+RUN_PROFILE: dict[str, Any] = {}
+
+
 def write_json(path: str | Path, data: dict[str, Any]) -> Path:
-    """Write plain JSON (numpy values converted, NaN/Inf refused) atomically."""
+    """Write plain JSON (numpy values converted, NaN/Inf refused) atomically, with the run's
+    ``RUN_PROFILE`` as ``"profile"`` during a run."""
     path = Path(path)
+    data = {**data, "profile": dict(RUN_PROFILE)} if RUN_PROFILE else data
     tmp = path.with_suffix(path.suffix + ".tmp")
     tmp.write_text(json.dumps(data, indent=2, default=_json_default, allow_nan=False))
     tmp.replace(path)

@@ -6,7 +6,7 @@ import os
 
 import pytest
 
-from flows.runtime import DEFAULT_PROFILE, ProfileError, exposure_warnings, load_profile
+from flows.runtime import DEFAULT_PROFILE
 
 
 def _worker_environ(keys):
@@ -38,85 +38,6 @@ def test_workers_pin_opencv_to_one_thread_and_start_with_the_pipeline_imported(r
     assert set(client.run(_worker_setup).values()) == {(1, True)}
     client.restart()                                 # a restarted worker gets the same setup
     assert set(client.run(_worker_setup).values()) == {(1, True)}
-
-
-def test_default_profile_is_a_two_worker_local_cluster():
-    profile = load_profile(DEFAULT_PROFILE)
-    assert profile.cluster["kind"] == "local"
-    assert (profile.cluster["n_workers"], profile.cluster["threads_per_worker"]) == (2, 1)
-    assert profile.prefect["api_url"] is None
-
-
-def test_profile_errors_name_the_file(tmp_path):
-    with pytest.raises(ProfileError, match="does not exist"):
-        load_profile(tmp_path / "missing.yaml")
-    bad = tmp_path / "bad.yaml"
-    bad.write_text("cluster: [unclosed\n")
-    with pytest.raises(ProfileError, match=r"bad\.yaml is not valid YAML"):
-        load_profile(bad)
-    slurm = tmp_path / "slurm.yaml"
-    slurm.write_text("cluster: {kind: slurm}\n")
-    # refused when loaded, before Prefect or a cluster starts (it used to be refused by dask_client)
-    with pytest.raises(ProfileError, match=r"slurm\.yaml: cluster kind 'slurm' is not supported yet"):
-        load_profile(slurm)
-    assert issubclass(ProfileError, ValueError)  # the CLI's bad input
-
-
-@pytest.mark.parametrize("text, message", [
-    # a typo used to reach LocalCluster(**spec), after Prefect had started
-    ("cluster: {kind: local, n_worker: 4}\n",
-     "unknown key 'cluster.n_worker' for cluster kind 'local'; allowed keys: kind, n_workers, threads_per_worker, "
-     "memory_limit, processes, dashboard, host, dashboard_address"),
-    ("cluster: {kind: local, scheduler_kwargs: {dashboard: true}}\n", "unknown key 'cluster.scheduler_kwargs'"),
-    ("prefect: {api_url: null, startup_timeout: 30}\n",
-     "unknown key 'prefect.startup_timeout'; allowed keys: api_url, startup_timeout_s"),
-    ("clusters: {kind: local}\n", "unknown section 'clusters'; allowed sections: cluster, prefect"),
-    ("cluster: {n_workers: two}\n", "'cluster.n_workers' must be an integer, not 'two' (str)"),
-    ("cluster: {n_workers: true}\n", "'cluster.n_workers' must be an integer, not True (bool)"),
-    ("cluster: {n_workers: 0}\n", "'cluster.n_workers' must be at least 1, not 0"),
-    ("cluster: {dashboard: 'yes please'}\n", "'cluster.dashboard' must be true or false"),
-    ("cluster: {dashboard_address: 8787}\n", "'cluster.dashboard_address' must be a string, not 8787 (int)"),
-    ("cluster: {memory_limit: 4 apples}\n", "'cluster.memory_limit' must be a size like 4GiB"),
-    ("prefect: {startup_timeout_s: soon}\n", "'prefect.startup_timeout_s' must be a number, not 'soon' (str)"),
-    ("prefect: {api_url: 8080}\n", "'prefect.api_url' must be a string or null"),
-    ("cluster: [local]\n", "'cluster' must be a mapping of keys"),
-    # safe_load refuses python tags; the message used to span four lines of PyYAML's marks
-    ("cluster: !!python/object/apply:os.system ['touch pwned']\n",
-     "is not valid YAML (line 1, column 10: could not determine a constructor for the tag "
-     "'tag:yaml.org,2002:python/object/apply:os.system')"),
-])
-def test_a_profile_is_validated_against_its_cluster_kind_when_loaded(tmp_path, text, message):
-    path = tmp_path / "profile.yaml"
-    path.write_text(text)
-    with pytest.raises(ProfileError) as info:
-        load_profile(path)
-    assert str(info.value).startswith(f"execution profile {path}")
-    assert message in str(info.value)
-    assert "\n" not in str(info.value)
-
-
-def test_only_a_profile_that_binds_beyond_loopback_without_tls_is_warned(tmp_path):
-    import dask
-
-    def profile(text):
-        path = tmp_path / "p.yaml"
-        path.write_text(text)
-        return load_profile(path)
-
-    assert exposure_warnings(load_profile(DEFAULT_PROFILE)) == []
-    assert exposure_warnings(profile("cluster: {dashboard: true}\n")) == []      # 127.0.0.1:8787
-    assert exposure_warnings(profile("cluster: {host: localhost, dashboard_address: '[::1]:8787'}\n")) == []
-    public = profile("cluster: {host: 0.0.0.0, dashboard: true}\n")
-    lines = exposure_warnings(public)
-    assert len(lines) == 2 and all("\n" not in line and str(public.path) in line for line in lines)
-    assert "scheduler and workers listen on 0.0.0.0 (cluster.host) without TLS" in lines[0]
-    assert "HTTP server" in lines[1] and "0.0.0.0:8787" in lines[1]
-    dashboard = exposure_warnings(profile("cluster: {dashboard: true, dashboard_address: ':8787'}\n"))
-    assert len(dashboard) == 1 and "listens on :8787 without TLS" in dashboard[0]
-    with dask.config.set({"distributed.comm.require-encryption": True,
-                          "distributed.scheduler.dashboard.tls.cert": "cert.pem"}):
-        assert exposure_warnings(public) == []
-    assert len(exposure_warnings(profile("cluster: {host: 'tls://0.0.0.0'}\n"))) == 1   # its HTTP server has no TLS
 
 
 def test_a_failed_run_prints_no_prefect_traceback_unless_asked(runtime_session, monkeypatch, capfd):
@@ -226,3 +147,42 @@ def test_a_finished_run_leaves_the_environment_as_it_was(tmp_path):
                          cwd=str(tmp_path))
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.strip().endswith("True")
+
+
+def _blas_threads() -> set[int]:
+    from threadpoolctl import threadpool_info
+
+    return {pool["num_threads"] for pool in threadpool_info()}
+
+
+def test_worker_setup_pins_blas_to_one_thread(runtime_session):
+    assert set().union(*runtime_session[2].run(_blas_threads).values()) == {1}
+
+
+def test_a_slurm_job_script_exports_the_worker_environment_before_the_worker_starts(tmp_path):
+    """The worker environment reaches Slurm workers through the job script (no Slurm needed to check it)."""
+    from flows.clusters import jobqueue_options
+    from flows.profiles import load_profile
+    from flows.runtime import worker_environ
+
+    profile = tmp_path / "slurm.yaml"
+    profile.write_text("cluster: {kind: slurm, cores: 2, memory: 3GiB, processes: 2, walltime: '02:00:00', "
+                       "queue: short, account: btf-lab, job_extra_directives: ['--qos=low'], interface: lo, "
+                       "job_script_prologue: ['module load python/3.11'], log_directory: logs}\n")
+    spec = load_profile(profile).cluster
+    environ = worker_environ("http://127.0.0.1:4200/api")
+    cls, options = jobqueue_options(spec, environ)
+    assert cls.__name__ == "SLURMCluster" and options["scheduler_options"]["dashboard_address"] == "127.0.0.1:0"
+    cluster_only = ("scheduler_options", "silence_logs")
+    script = cls.job_cls(scheduler="tcp://127.0.0.1:8786",
+                         **{k: v for k, v in options.items() if k not in cluster_only}).job_script()
+    for line in ("#SBATCH -p short", "#SBATCH -A btf-lab", "#SBATCH -t 02:00:00", "#SBATCH --qos=low",
+                 f"#SBATCH -e {tmp_path / 'logs'}/", "#SBATCH --cpus-per-task=2", "#SBATCH -J btf-worker",
+                 "export MALLOC_MMAP_THRESHOLD_=4194304", "export OMP_NUM_THREADS=1",
+                 "export PREFECT_API_URL=http://127.0.0.1:4200/api"):
+        assert line in script, (line, script)
+    lines = script.splitlines()
+    start = next(i for i, line in enumerate(lines) if "distributed.cli.dask_worker" in line)
+    prologue = lines.index("module load python/3.11")
+    assert prologue < lines.index("export OMP_NUM_THREADS=1") < start      # after the user's lines, before the worker
+    assert "--nthreads 1 " in lines[start] and "--nworkers 2 " in lines[start] and "--interface lo" in lines[start]

@@ -12,6 +12,7 @@ import os
 import re
 import shlex
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -131,6 +132,10 @@ def test_server_start_status_is_used_then_stop_leaves_no_process(state_home, tmp
                             capture_output=True, text=True, timeout=300)
     assert shared.returncode == 0, shared.stderr
     assert f"Dask cluster {cluster['address']} (the btf server's) ready" in shared.stderr, shared.stderr
+    # ... in a child of the server's command runner, which had the imports done
+    runner = server["runner"]
+    assert runner["status"] == "running"
+    assert "forked by the btf server's command runner" in shared.stderr, shared.stderr
     # its progress lines reached the run's log on the server (the UI shows them), also with --no-progress
     ingest_runs = [r for r in _flow_runs_since(server["url"], since) if "shared.zarr" in json.dumps(r["parameters"])]
     assert len(ingest_runs) == 1, ingest_runs
@@ -146,11 +151,28 @@ def test_server_start_status_is_used_then_stop_leaves_no_process(state_home, tmp
     assert chunks and all((tmp_path / "shared.zarr" / c).read_bytes() == (tmp_path / "own.zarr" / c).read_bytes()
                           for c in chunks)
 
+    # Ctrl-C (SIGINT to the command) reaches the forked run: it stops as a run in its own process does
+    slow = subprocess.Popen([sys.executable, "-m", "flows.cli", "--no-progress", "simulate", "--device", "tiny",
+                             "--materials", "6", "--out", str(tmp_path / "slow")], cwd=REPO,
+                            env=_environ(state_home), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    lines = []
+    for line in slow.stderr:
+        lines.append(line)
+        if "ready after" in line:
+            break
+    slow.send_signal(signal.SIGINT)
+    rest = slow.communicate(timeout=120)[1]
+    assert slow.returncode == 130, "".join(lines) + rest
+    assert "interrupted; run the same command again to resume" in rest
+    assert "forked by the btf server's command runner" in "".join(lines)
+
     stopped = _btf(state_home, "server", "stop")
     assert stopped.returncode == 0 and json.loads(stopped.stdout)["stopped_now"] is True
     assert not is_alive(state["pid"]) and _group_members(state["pid"]) == []
     assert not is_alive(cluster["pid"]) and _group_members(cluster["pid"]) == []
     assert not Path(cluster["state_file"]).exists()
+    assert not is_alive(runner["pid"]) and not Path(runner["state_file"]).exists()
+    assert not Path(runner["socket"]).exists()
     assert not Path(server["state_file"]).exists() and recorded_server_url() is None
     assert json.loads(_btf(state_home, "server", "status").stdout)["status"] == "stopped"
 
