@@ -13,8 +13,8 @@ processes):
 Cold runs use an empty state folder (``XDG_STATE_HOME``), so each starts a temporary Prefect server
 (in parallel with the cluster) and a Dask cluster; warm runs use the folder of a ``btf server``
 started once by this script (its start time is reported as ``server_start_s``) and stopped at the
-end: its Prefect server and its Dask cluster (``used_server_cluster`` counts the runs whose stderr
-says they ran on it). Cold and warm runs
+end: its Prefect server, its Dask cluster and its command runner (``used_server_cluster`` and
+``used_runner`` count the runs whose stderr says they ran on the cluster and in a fork of the runner). Cold and warm runs
 alternate, ``--repeats`` of each, against the machine's drifting load. With ``--before DIR`` (an
 export of an earlier revision, e.g. ``git archive HEAD | tar -x -C DIR``), the same ingest run from
 that tree is interleaved too (``before``: the serial start of that revision).
@@ -66,13 +66,14 @@ def _ingest(tree: Path, state_home: Path, capture: Path, out: Path) -> dict:
     stage = json.loads(done.stdout)["stages"]["ingest"]["seconds"]
     return {"wall_s": round(wall, 2), "stage_s": round(stage, 3), "overhead_s": round(wall - stage, 2),
             "load_1min": round(load, 2), "used_server_cluster": int("(the btf server's) ready" in done.stderr),
+            "used_runner": int("forked by the btf server's command runner" in done.stderr),
             **{name: done.stderr.count(text) for name, text in NOISE.items()}}
 
 
 def _summary(runs: list[dict]) -> dict:
     return {"runs": runs, "median_overhead_s": round(statistics.median(r["overhead_s"] for r in runs), 2),
             "min_overhead_s": min(r["overhead_s"] for r in runs),
-            **{name: sum(r[name] for r in runs) for name in (*NOISE, "used_server_cluster")}}
+            **{name: sum(r[name] for r in runs) for name in (*NOISE, "used_server_cluster", "used_runner")}}
 
 
 def _machine() -> dict:
