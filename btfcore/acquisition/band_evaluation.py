@@ -14,7 +14,9 @@ noise-free truth BTF ``(n_lv, rows, w, 3)`` (linear RGB, rows
   reduced over bands (:func:`demultiplexed_moments`, :func:`moments_variance`;
   the thresholded de-noising, VMV §4.1);
 * **reconstruction** of one strategy (:mod:`btfcore.acquisition.strategies`)
-  on one band (:func:`reconstruct_band`);
+  on one band (:func:`reconstruct_band`), and of every strategy with its
+  **noise-free floor**, the same strategy on the noise-free counterpart of its
+  measurement (:func:`noise_free_band`, :func:`reconstruct_strategies`);
 * **scores**: sums of the relative L2 on log Y (paper 1 §4.1.1) and of the
   per-texture errors of mRMSE, mPSNR and mRE (SR paper eqs. 8-10) per band
   (:func:`score_band`), reduced over bands and finished by
@@ -29,21 +31,22 @@ noise-free truth BTF ``(n_lv, rows, w, 3)`` (linear RGB, rows
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from btfcore.acquisition.noise import SensorNoise, expose
 from btfcore.acquisition.reconstruct import apply, measure, reconstruct_abtf
-from btfcore.acquisition.strategies import Geometry, Strategy
+from btfcore.acquisition.strategies import FLOOR_COMPUTED, Geometry, Strategy
 from btfcore.capture.demultiplex import demultiplex_operator
 from btfcore.model.colour import LOG_YUV_EPS, from_log_yuv, log_luminance, to_log_yuv
 
 __all__ = ["CHROMA_MAX", "DIVERGED_MRE_PERCENT", "DIVERGED_REL_L2_LOG_Y", "ILL_CONDITIONED", "LOG_Y_MAX",
            "BandScores", "BandTruth", "combine_moments", "conditioning", "demultiplex_views",
-           "demultiplexed_moments", "divergence", "finish_scores", "image_maxima", "measure_band", "moments_variance",
-           "noisy_multiplexed", "noisy_rows", "noisy_single", "reconstruct_band", "score_band"]
+           "demultiplexed_moments", "divergence", "finish_scores", "floor_name", "image_maxima", "measure_band",
+           "moments_variance", "noise_free_band", "noisy_multiplexed", "noisy_rows", "noisy_single",
+           "reconstruct_band", "reconstruct_strategies", "score_band"]
 
 #: Range a log-space reconstruction is clipped to before it is mapped back to RGB: log Y in
 #: [log eps, LOG_Y_MAX] (an unregularised solve can extrapolate to exp overflow), U/Y and V/Y in
@@ -145,6 +148,81 @@ def measure_band(truth_halo: np.ndarray, g0: int, r0: int, r1: int, gains: Gains
     truth = truth_halo[:, r0 - g0:r1 - g0]
     mux = noisy_multiplexed(truth, r0, gains, patterns, noise, seed)       # each row's noise is the row's own
     return truth, single, mux, demultiplex_views(mux, patterns, geometry)
+
+
+#: What one band's reconstructions read: ``(truth, single_halo, mux, demux)`` as :func:`measure_band` returns.
+Measured = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+
+
+def noise_free_band(truth_halo: np.ndarray, g0: int, r0: int, r1: int, patterns: np.ndarray,
+                    geometry: Geometry) -> Measured:
+    """The noise-free counterparts of :func:`measure_band`'s measurements: what the floors read.
+
+    The single-light rows are the truth's own; the multiplexed images are the
+    truth's through the same patterns (:func:`btfcore.acquisition.reconstruct.measure`),
+    demultiplexed by the same least squares (:func:`demultiplex_views`).
+
+    Parameters
+    ----------
+    truth_halo : (n_lv, halo rows, w, 3) ndarray
+        Truth of texture rows ``g0 : g0 + halo rows``.
+
+    Returns
+    -------
+    truth, single_halo, mux, demux : ndarray
+        As :func:`measure_band`, without noise.
+    """
+    truth = truth_halo[:, r0 - g0:r1 - g0]
+    mux = measure(truth, patterns=patterns)                                 # (I_views (x) M) B
+    return truth, truth_halo, mux, demultiplex_views(mux, patterns, geometry)
+
+
+def floor_name(strategy: str) -> str:
+    """The key of a strategy's noise-free floor among a band's scores (:func:`reconstruct_strategies`)."""
+    return f"{strategy}/noise-free"
+
+
+def reconstruct_strategies(strategies: Sequence[Strategy], r0: int, r1: int, truth_halo: np.ndarray, g0: int,
+                           geometry: Geometry, measured: Measured, noise_free: Measured | None = None
+                           ) -> Iterator[tuple[Strategy, np.ndarray, np.ndarray | None]]:
+    """Every strategy's reconstruction of texture rows r0:r1 and, with ``noise_free``, its noise-free floor.
+
+    The floor is the same strategy (its sampling, basis, solver,
+    regularisation and, for the thresholded de-noising, the textures it
+    drops) applied to the noise-free measurement: what the sampling, basis
+    and solver give with perfect measurements. Computed only for strategies
+    whose ``floor`` is :data:`~btfcore.acquisition.strategies.FLOOR_COMPUTED`
+    (the others' floors are known: zero, or their own error).
+
+    Parameters
+    ----------
+    strategies : sequence of Strategy
+    r0, r1 : int
+        The band's texture rows.
+    truth_halo : (n_lv, halo rows, w, 3) ndarray
+        Truth of texture rows ``g0 : g0 + halo rows`` (the band and its ABTF halo).
+    geometry : Geometry
+    measured : tuple
+        :func:`measure_band` of the band.
+    noise_free : tuple, optional
+        :func:`noise_free_band` of the band (None: no floors).
+
+    Yields
+    ------
+    strategy, reconstruction, floor : Strategy, (n_lv, r1 - r0, w, 3) ndarray, same or None
+        float32 linear RGB, one strategy at a time (a band holds at most two reconstructions).
+    """
+    _, single, mux, demux = measured
+    caches: tuple[dict[str, np.ndarray], dict[str, np.ndarray]] = ({}, {})
+    for strategy in strategies:
+        recon = reconstruct_band(strategy, r0, r1, geometry.height, truth_halo, single, mux, g0, geometry, demux,
+                                 caches[0])
+        floor = None
+        if noise_free is not None and strategy.floor == FLOOR_COMPUTED:
+            _, single0, mux0, demux0 = noise_free
+            floor = np.asarray(reconstruct_band(strategy, r0, r1, geometry.height, truth_halo, single0, mux0, g0,
+                                                geometry, demux0, caches[1]), dtype=np.float32)
+        yield strategy, np.asarray(recon, dtype=np.float32), floor
 
 
 # --------------------------------------------------------------------------- per-texture variance over bands

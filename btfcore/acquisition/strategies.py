@@ -31,13 +31,27 @@ import numpy as np
 from btfcore.acquisition.reconstruct import LAMBDA_ALS, SolveOperator, abtf_operator, solve_operator
 from btfcore.acquisition.sampling import multiplexed_basis, parabolic_map_sampling, random_swap
 
-__all__ = ["REGISTRY", "THESIS_N_S", "THESIS_PAIRS", "Geometry", "Strategy", "StrategyBases", "StrategySpec",
-           "build_strategies", "scaled_pairs", "strategy_names"]
+__all__ = ["FLOOR_COMPUTED", "FLOOR_EXACT", "FLOOR_INPUT", "FLOOR_NOTES", "REGISTRY", "THESIS_N_S", "THESIS_PAIRS",
+           "Geometry", "Strategy", "StrategyBases", "StrategySpec", "build_strategies", "floor_kinds", "scaled_pairs",
+           "strategy_names"]
 
 #: The thesis' sparse pair counts (paper 4 §5.2: n_s of 2,376 (light, turntable) pairs, all 11 cameras).
 THESIS_N_S = (100, 200, 400)
 #: (light, turntable) pairs of the thesis' dome (198 LEDs x 12 positions).
 THESIS_PAIRS = 198 * 12
+
+
+#: What a strategy's noise-free floor is (docs/evaluation.md, "Noise-free floors"): the same strategy (sampling,
+#: basis, solver, regularisation, thresholded rows) on the noise-free counterpart of its measurement, computed
+#: (``FLOOR_COMPUTED``); exact (``FLOOR_EXACT``: plain S-matrix demultiplexing of noise-free images returns the
+#: truth, VMV §3.2); or its own result (``FLOOR_INPUT``: it reads the noise-free truth, paper 1 Table 2 "proj").
+FLOOR_COMPUTED, FLOOR_EXACT, FLOOR_INPUT = "computed", "exact", "noise-free input"
+#: The reports' sentence for each kind of floor.
+FLOOR_NOTES = {
+    FLOOR_COMPUTED: "the same sampling, basis, solver and regularisation on noise-free measurements",
+    FLOOR_EXACT: "zero: noise-free multiplexed images demultiplex to the truth exactly (VMV §3.2)",
+    FLOOR_INPUT: "its own error: it reads the noise-free truth (the projection bound, paper 1 Table 2)",
+}
 
 
 def scaled_pairs(n_s: int, n_pairs: int) -> int:
@@ -75,7 +89,8 @@ class Strategy:
     truth), ``'demux'`` (the demultiplexed multiplexed measurement) or
     ``'mux'`` (the multiplexed rows themselves). ``rows`` index that source
     (None: all). An empty ``operators`` means "no reconstruction" (the plain
-    demultiplexed BTF). ``info`` is reported.
+    demultiplexed BTF). ``info`` is reported. ``floor`` is the kind of its
+    noise-free floor (:data:`FLOOR_COMPUTED`, :data:`FLOOR_EXACT`, :data:`FLOOR_INPUT`).
     """
 
     name: str
@@ -84,6 +99,7 @@ class Strategy:
     rows: np.ndarray | None
     operators: dict[str, SolveOperator]
     info: dict[str, Any] = field(default_factory=dict)
+    floor: str = FLOOR_COMPUTED
 
 
 @dataclass(frozen=True)
@@ -300,22 +316,24 @@ def _sparse_multiplexed(d: _Design, _: Any) -> Built:
 
 @dataclass(frozen=True)
 class StrategySpec:
-    """One entry of :data:`REGISTRY`: a strategy's name, space, source and builder (called with ``arg``)."""
+    """One entry of :data:`REGISTRY`: a strategy's name, space, source and builder (called with ``arg``), and
+    the kind of its noise-free floor (:data:`FLOOR_COMPUTED` unless said otherwise)."""
 
     name: str
     space: str
     source: str
     build: Callable[[_Design, Any], Built]
     arg: Any = None
+    floor: str = FLOOR_COMPUTED
 
 
 #: Every strategy of the evaluation, in report order (docs/evaluation.md, "Strategies").
 REGISTRY: tuple[StrategySpec, ...] = (
     *(StrategySpec(f"{model}-{label}", "log", "single", build, label)
       for label in ("pmap7", "optimized") for model, build in (("abrdf", _abrdf), ("abtf", _abtf))),
-    StrategySpec("abrdf-projection", "log", "truth", _abrdf_projection),
-    StrategySpec("abtf-projection", "log", "truth", _abtf_projection),
-    StrategySpec("demultiplexed", "log", "demux", _demultiplexed),
+    StrategySpec("abrdf-projection", "log", "truth", _abrdf_projection, floor=FLOOR_INPUT),
+    StrategySpec("abtf-projection", "log", "truth", _abtf_projection, floor=FLOOR_INPUT),
+    StrategySpec("demultiplexed", "log", "demux", _demultiplexed, floor=FLOOR_EXACT),
     StrategySpec("projection", "linear", "demux", _projection),
     StrategySpec("thresholded", "linear", "demux", _thresholded),
     *(StrategySpec(f"sparse-{kind}-n{n}", "linear", "single", build, n)
@@ -328,6 +346,11 @@ REGISTRY: tuple[StrategySpec, ...] = (
 def strategy_names() -> list[str]:
     """Names of the strategies :func:`build_strategies` makes, in its order (those of :data:`REGISTRY`)."""
     return [spec.name for spec in REGISTRY]
+
+
+def floor_kinds() -> dict[str, str]:
+    """``{strategy: kind of its noise-free floor}`` of every strategy of :data:`REGISTRY`, in its order."""
+    return {spec.name: spec.floor for spec in REGISTRY}
 
 
 def build_strategies(bases: StrategyBases, geometry: Geometry, light_dir: np.ndarray, view_dir: np.ndarray,
@@ -363,5 +386,6 @@ def build_strategies(bases: StrategyBases, geometry: Geometry, light_dir: np.nda
     """
     design = _Design(bases, geometry, light_dir, view_dir, variance, patterns, seed, abrdf_k_fraction,
                      sampling_steps)
-    strategies = [Strategy(spec.name, spec.space, spec.source, *spec.build(design, spec.arg)) for spec in REGISTRY]
+    strategies = [Strategy(spec.name, spec.space, spec.source, *spec.build(design, spec.arg), floor=spec.floor)
+                  for spec in REGISTRY]
     return strategies, design.report()

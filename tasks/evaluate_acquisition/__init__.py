@@ -34,10 +34,13 @@ from btfcore.acquisition.band_evaluation import (
     BandTruth,
     demultiplex_views,
     finish_scores,
+    floor_name,
+    noise_free_band,
     noisy_multiplexed,
     noisy_rows,
     noisy_single,
     reconstruct_band,
+    reconstruct_strategies,
     score_band,
 )
 from btfcore.acquisition.strategies import (
@@ -48,10 +51,18 @@ from btfcore.acquisition.strategies import (
     Strategy,
     StrategyBases,
     build_strategies,
+    floor_kinds,
     scaled_pairs,
     strategy_names,
 )
-from tasks.evaluate_acquisition.claims import class_means, claims, overall_means, predicted_times, thesis_tables
+from tasks.evaluate_acquisition.claims import (
+    class_means,
+    claims,
+    floor_means,
+    overall_means,
+    predicted_times,
+    thesis_tables,
+)
 from tasks.evaluate_acquisition.config import (
     STRUCTURED_CLASSES,
     TRUTH_KIND,
@@ -94,9 +105,10 @@ __all__ = [
     "StrategyBases", "TruthSpec", "abrdf_images", "band_maxima", "band_variance", "bands", "build_strategies",
     "claims", "class_means", "create_reconstruction_store", "create_truth_store", "demultiplex_views",
     "ensure_truth_database", "env_map_path", "evaluate_acquisition", "evaluate_band", "evaluate_materials",
-    "figures_key", "finish_scores", "fit_bases", "leave_one_out_bases", "noisy_multiplexed", "noisy_rows",
-    "noisy_single", "overall_means", "pending_truth_specs", "predicted_times", "prepare_truth_material",
-    "reconstruct_band", "render_one", "render_truth_view", "renderings", "reuse_message", "scale_of",
+    "figures_key", "finish_scores", "fit_bases", "floor_kinds", "floor_means", "floor_name",
+    "leave_one_out_bases", "noise_free_band", "noisy_multiplexed", "noisy_rows", "noisy_single", "overall_means",
+    "pending_truth_specs", "predicted_times", "prepare_truth_material", "reconstruct_band", "reconstruct_strategies",
+    "render_one", "render_truth_view", "renderings", "reuse_message", "scale_of",
     "scaled_pairs", "score_band", "scores_key", "strategy_names", "thesis_tables", "truth_specs",
     "write_acquisition_report",
 ]

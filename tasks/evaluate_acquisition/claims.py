@@ -16,7 +16,14 @@ import numpy as np
 from btfcore.acquisition.band_evaluation import conditioning, divergence
 from btfcore.acquisition.hadamard import multiplexing_patterns
 from btfcore.acquisition.reconstruct import LAMBDA_ALS
-from btfcore.acquisition.strategies import THESIS_N_S, strategy_names
+from btfcore.acquisition.strategies import (
+    FLOOR_COMPUTED,
+    FLOOR_EXACT,
+    FLOOR_NOTES,
+    THESIS_N_S,
+    floor_kinds,
+    strategy_names,
+)
 from btfcore.dome import Device, get_device
 from tasks.evaluate_acquisition.config import STRUCTURED_CLASSES
 
@@ -71,6 +78,37 @@ def mean_stats(result: dict[str, Any], metric: str = "rel_l2_log_y") -> dict[str
             kept = [r["scores"][name][metric] for r in recs if not _diverged(r, name)]
             every = [r["scores"][name][metric] for r in recs]
             out[group][name] = (float(np.mean(kept or every)), len(every) - len(kept), len(every))
+    return out
+
+
+def floor_result(result: dict[str, Any]) -> dict[str, Any]:
+    """``result`` with each material's noise-free floors (``"floors"``) as its scores; materials without
+    floors left out. Its :func:`mean_stats` are the floors' means, diverged floors left out alike."""
+    return {"materials": {mid: {**rec, "scores": rec["floors"]} for mid, rec in result["materials"].items()
+                          if rec.get("floors")}}
+
+
+def floor_means(result: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """Per strategy its noise-free floor: the kind, what it is and, where computed, its means.
+
+    Returns
+    -------
+    floors : dict
+        ``{strategy: {"kind", "note"}}`` (kinds of :mod:`btfcore.acquisition.strategies`); a computed
+        floor adds the means over the materials of ``rel_l2_log_y``, ``mrmse``, ``mpsnr``, ``mre`` (the
+        scores' units) with diverged floors left out (:func:`mean_stats`), ``"diverged_left_out"``
+        (``[left out, results]``) and ``"materials"`` (the materials with floors).
+    """
+    floors = floor_result(result)
+    stats = {m: mean_stats(floors, m)["all"] for m in ("rel_l2_log_y", "mrmse", "mpsnr", "mre")} \
+        if floors["materials"] else {}
+    out: dict[str, dict[str, Any]] = {}
+    for name, kind in floor_kinds().items():
+        out[name] = {"kind": kind, "note": FLOOR_NOTES[kind]}
+        if kind == FLOOR_COMPUTED and name in stats.get("rel_l2_log_y", {}):
+            out[name].update({m: v[name][0] for m, v in stats.items()})
+            out[name]["diverged_left_out"] = list(stats["rel_l2_log_y"][name][1:])
+            out[name]["materials"] = sorted(floors["materials"])
     return out
 
 
@@ -319,7 +357,8 @@ def thesis_tables(result: dict[str, Any], flagged: bool = False) -> dict[str, An
     """Tables shaped like the thesis': paper 1 Table 2, VMV Table 1 and every strategy, and the flagged results.
 
     Each a list of rows, the header first with each column's unit in brackets.
-    Means leave diverged results out (:func:`mean_stats`). With ``flagged`` a
+    Means leave diverged results out (:func:`mean_stats`). The every-strategy table has each
+    strategy's noise-free floor beside its error (:func:`floor_means`). With ``flagged`` a
     cell that is a mean leaving results out, or a diverged or ill-conditioned
     result, is ``{"value", "flag": reason}`` (for the HTML report;
     :mod:`tasks.html_report` draws it in red).
@@ -345,11 +384,21 @@ def thesis_tables(result: dict[str, Any], flagged: bool = False) -> dict[str, An
         t1.append([mid, rec["class"]] + [own(mid, k, round(100 * rec["scores"][k]["rel_l2_log_y"], 2))
                                          for k in VMV_DENOISING])
     t1 += [[f"mean {cls}", cls] + [mean("rel_l2_log_y", cls, k) for k in VMV_DENOISING] for cls in classes]
-    t4 = [["strategy", "rel. L2 log Y [%]", "mRMSE [linear BTF units]", "mPSNR [dB]", "mRE [%]",
-           "diverged results left out"]]
+    floors = floor_result(result)
+    floor_st = mean_stats(floors) if floors["materials"] else {"all": {}}
+    kinds = floor_kinds()
+
+    def floor(name: str) -> Any:
+        if name in floor_st["all"]:
+            cell = _cell(floor_st, "all", name, 100.0, 2)
+            return cell if flagged or not isinstance(cell, dict) else cell["value"]
+        return {FLOOR_EXACT: "0 (exact)", FLOOR_COMPUTED: None}.get(kinds[name], "its own error (reads the truth)")
+
+    t4 = [["strategy", "rel. L2 log Y [%]", "noise-free floor, rel. L2 log Y [%]", "mRMSE [linear BTF units]",
+           "mPSNR [dB]", "mRE [%]", "diverged results left out"]]
     for name in strategy_names():                                  # the registry's rows, in its order
         _, left_out, total = st["rel_l2_log_y"]["all"][name]
-        t4.append([name, mean("rel_l2_log_y", "all", name), mean("mrmse", "all", name, 1.0, 6),
+        t4.append([name, mean("rel_l2_log_y", "all", name), floor(name), mean("mrmse", "all", name, 1.0, 6),
                    mean("mpsnr", "all", name, 1.0), mean("mre", "all", name, 1.0),
                    f"{left_out} of {total}" if left_out else "none"])
     bad = [["material", "strategy", "rel. L2 log Y [%]", "mPSNR [dB]", "mRE [%]", "condition number [1]",

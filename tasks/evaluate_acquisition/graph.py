@@ -27,10 +27,12 @@ from btfcore.acquisition.band_evaluation import (
     Moments,
     demultiplexed_moments,
     finish_scores,
+    floor_name,
     image_maxima,
     measure_band,
     moments_variance,
-    reconstruct_band,
+    noise_free_band,
+    reconstruct_strategies,
     score_band,
 )
 from btfcore.acquisition.hadamard import multiplexing_patterns
@@ -112,25 +114,31 @@ def band_variance(path: str, r0: int, r1: int, gains: tuple[np.ndarray, np.ndarr
 
 def evaluate_band(path: str, r0: int, r1: int, strategies: list[Strategy], gains: tuple[np.ndarray, np.ndarray],
                   patterns: np.ndarray, geometry: Geometry, noise: SensorNoise, seed: Sequence[int],
-                  write: dict[str, str] | None = None) -> dict[str, BandScores]:
+                  write: dict[str, str] | None = None, floors: bool = True) -> dict[str, BandScores]:
     """Measure, reconstruct and score every strategy on texture rows r0:r1 (one Dask task).
 
+    With ``floors`` the scores also hold each strategy's noise-free floor under
+    :func:`~btfcore.acquisition.band_evaluation.floor_name` (the same strategy on
+    noise-free measurements, :func:`~btfcore.acquisition.band_evaluation.reconstruct_strategies`).
     With ``write`` (``{strategy: store path}``) the reconstructions are also
     written to those stores (this band owns whole chunks of them).
     """
     h = geometry.height
     halo = abtf_halo(r0, r1, h, 3) if h >= 3 else slice(r0, r1)
     truth_halo = _read_rows(path, halo.start, halo.stop)
-    truth, single, mux, demux = measure_band(truth_halo, halo.start, r0, r1, gains, patterns, geometry, noise, seed)
-    scores, ref, log_cache = {}, BandTruth.of(truth), {}
-    for strategy in strategies:
-        recon = reconstruct_band(strategy, r0, r1, h, truth_halo, single, mux, halo.start, geometry, demux, log_cache)
-        recon = np.asarray(recon, dtype=np.float32)
-        if not np.all(np.isfinite(recon)):
-            bad = np.unravel_index(int(np.argmin(np.isfinite(recon))), recon.shape)
-            raise ValueError(f"{path}: strategy {strategy.name} produced a non-finite value at "
-                             f"(row {bad[0]}, texel {r0 + bad[1]}, {bad[2]}); check its operator's condition")
+    measured = measure_band(truth_halo, halo.start, r0, r1, gains, patterns, geometry, noise, seed)
+    noise_free = noise_free_band(truth_halo, halo.start, r0, r1, patterns, geometry) if floors else None
+    scores, ref = {}, BandTruth.of(measured[0])
+    for strategy, recon, floor in reconstruct_strategies(strategies, r0, r1, truth_halo, halo.start, geometry,
+                                                         measured, noise_free):
+        for what, x in (("", recon), (" (noise-free floor)", floor)):
+            if x is not None and not np.all(np.isfinite(x)):
+                bad = np.unravel_index(int(np.argmin(np.isfinite(x))), x.shape)
+                raise ValueError(f"{path}: strategy {strategy.name}{what} produced a non-finite value at "
+                                 f"(row {bad[0]}, texel {r0 + bad[1]}, {bad[2]}); check its operator's condition")
         scores[strategy.name] = score_band(ref, recon)
+        if floor is not None:
+            scores[floor_name(strategy.name)] = score_band(ref, floor)
         if write and strategy.name in write:
             group = zarr.open_group(write[strategy.name], mode="r+", zarr_format=3)
             group["btf"][:, r0:r1] = recon
@@ -244,12 +252,15 @@ def _submit_material(client: Any, model_path: str, materials: list[Material], m:
 def _finish_material(record_path: str, key: str, cls: str, scores: dict[str, BandScores],
                      info: tuple[dict[str, Any], dict[str, Any]], maxima: tuple[np.ndarray, np.ndarray],
                      stores: dict[str, str] | None) -> dict[str, Any]:
-    """One held-out material's record (scores, strategies, sampling), stored under ``key`` (a task).
+    """One held-out material's record (scores, noise-free floors, strategies, sampling), stored under ``key``
+    (a task).
 
     Marks its reconstruction stores complete, then writes the record atomically: a killed run
     leaves the material either finished or to be redone.
     """
     record = {"class": cls, "scores": {name: finish_scores(scores[name], maxima[0]) for name in strategy_names()},
+              "floors": {name: finish_scores(scores[floor_name(name)], maxima[0]) for name in strategy_names()
+                         if floor_name(name) in scores},
               "strategies": info[0], "sampling": info[1]}
     for path in (stores or {}).values():
         zarr.open_group(path, mode="r+", zarr_format=3).attrs.update({"complete": True})
@@ -273,7 +284,8 @@ def evaluate_materials(model_path: str, materials: list[Material], config: Evalu
     Returns
     -------
     result : dict
-        ``{"materials": {id: {"class", "scores": {strategy: metrics}, "strategies": {strategy: info},
+        ``{"materials": {id: {"class", "scores": {strategy: metrics}, "floors": {strategy: metrics of its
+        noise-free floor} (the strategies whose floor is computed), "strategies": {strategy: info},
         "sampling": ...}}, "reconstructions": {id: {strategy: path}}, "reused": {id: bool},
         "written": [ids whose reconstructions were written]}``.
     """

@@ -42,8 +42,11 @@ from tasks.report import reused_text, write_json
 from tasks.staging import store_attrs
 
 #: Version of the evaluation's results: bump it when the scores, reconstructions or figures change meaning,
-#: so that a rerun recomputes them.
-RESULTS_VERSION = 1
+#: so that a rerun recomputes them. 2: every record holds its strategies' noise-free floors.
+RESULTS_VERSION = 2
+#: Version of the demo's model-database record (:func:`model_database_key`), apart from the evaluation's
+#: results: the model database does not change when they do.
+MODEL_DATABASE_VERSION = 1
 
 #: Config fields that only affect what is rendered and kept, not the scores.
 _RENDER_FIELDS = ("render_materials", "render_size", "keep_reconstructions")
@@ -94,7 +97,7 @@ def model_database_key(db: str | os.PathLike, model_dir: str | os.PathLike, sett
             for b in BASES}
     if not all(keys.values()):
         return None
-    return _hash({"results_version": RESULTS_VERSION, "settings": settings.key(), "bases": keys,
+    return _hash({"results_version": MODEL_DATABASE_VERSION, "settings": settings.key(), "bases": keys,
                   "materials": {m.material_id: [m.cls, m.ingest_hash] for m in materials}})
 
 

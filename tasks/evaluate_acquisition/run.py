@@ -11,7 +11,14 @@ from typing import Any
 
 from btfcore.acquisition.strategies import strategy_names
 from tasks.compute import Progress
-from tasks.evaluate_acquisition.claims import class_means, claims, predicted_times, result_flags, thesis_tables
+from tasks.evaluate_acquisition.claims import (
+    class_means,
+    claims,
+    floor_means,
+    predicted_times,
+    result_flags,
+    thesis_tables,
+)
 from tasks.evaluate_acquisition.config import STRUCTURED_CLASSES, EvaluationConfig, truth_specs
 from tasks.evaluate_acquisition.graph import EVAL_BASES, _geometry, evaluate_materials, fit_bases
 from tasks.evaluate_acquisition.report import abrdf_images, env_map_path, renderings, scale_of
@@ -46,7 +53,9 @@ def evaluate_acquisition(db: str | os.PathLike, out_dir: str | os.PathLike, clie
     The report is written by :func:`tasks.evaluate_acquisition.report.write_acquisition_report`.
     A rerun on the same ``out_dir`` reuses every finished result whose inputs are unchanged
     (:mod:`tasks.evaluate_acquisition.reuse`); the summary's ``"reused"`` says how much,
-    ``{what: [reused, total]}``, and ``"key"`` holds the content keys.
+    ``{what: [reused, total]}``, and ``"key"`` holds the content keys. Each material's record has its
+    strategies' noise-free floors beside their scores (``"floors"``), and ``"floors"`` of the summary
+    the kind of each strategy's floor and their means (:func:`.claims.floor_means`).
     """
     start = time.perf_counter()
     out = Path(out_dir)
@@ -99,7 +108,7 @@ def evaluate_acquisition(db: str | os.PathLike, out_dir: str | os.PathLike, clie
             "materials": result["materials"], "reconstructions": result["reconstructions"],
             "class_means": {m: class_means(result, m) for m in ("rel_l2_log_y", "mrmse", "mpsnr", "mre")},
             "tables": thesis_tables(result), "times": times, "claims": claims(result, times),
-            "flags": result_flags(result),
+            "flags": result_flags(result), "floors": floor_means(result),
             "figures": figures, "strategies": strategy_names(), "key": {"scores": key, "figures": fig_key},
             "reused": reused,
             "seconds": {k: round(v, 2) for k, v in {**seconds, "total": time.perf_counter() - start}.items()}}

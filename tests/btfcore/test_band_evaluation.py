@@ -149,3 +149,60 @@ def test_build_strategies_makes_the_registry_in_its_order():
         assert count["n_s"] == scaled_pairs(n_thesis, n_pairs)
         assert count["n_meas"] == count["n_s"] * g.n_cam == len(by[f"sparse-pinv-n{n_thesis}"].rows)
     assert sampling["paper1"]["n_samples"] == len(by["abrdf-pmap7"].rows)
+
+
+# --------------------------------------------------------------------------- noise-free floors
+
+
+def test_the_floor_is_the_strategy_on_noise_free_input_and_below_the_noisy_error():
+    """A strategy's floor equals the same strategy (same operators) run on noise-free single-light rows and
+    multiplexed images of the truth, and on average it is at most the noisy error."""
+    from btfcore.acquisition.band_evaluation import (
+        floor_name,
+        measure_band,
+        noise_free_band,
+        reconstruct_band,
+        reconstruct_strategies,
+    )
+    from btfcore.acquisition.strategies import FLOOR_COMPUTED, floor_kinds
+    from btfcore.dome import get_device
+
+    device = get_device("tiny", texture_shape=(6, 6))
+    g = Geometry(device.n_turn, device.n_cam, device.n_leds, 6, 6)
+    light, view, _ = device.lv_directions()
+    rng = np.random.default_rng(11)
+    n = g.n_lv
+    # a positive truth in the span of the linear basis (a constant column and 7 random ones), so that the
+    # linear strategies reach it without noise
+    q, _ = np.linalg.qr(np.column_stack([np.ones(n), rng.standard_normal((n, 7))]))
+    linear = types.SimpleNamespace(U=q.astype(np.float32), sigma=np.linspace(20, 1, 8).astype(np.float32))
+    coeff = rng.uniform(-0.5, 0.5, (8, g.height * g.width * 3))
+    coeff[0] = np.sqrt(n) * np.sign(q[0, 0])                                    # a mean of 1
+    truth = (q @ coeff).reshape(n, g.height, g.width, 3).astype(np.float32)
+    assert truth.min() > 0
+    bases = StrategyBases({c: _basis(rng, n, 24) for c in ("log_y", "u_y", "v_y")}, _basis(rng, 9 * n, 12),
+                          linear, linear)
+    patterns = multiplexing_patterns(g.n_leds)
+    noise = SensorNoise(full_well_e=300.0, read_noise_e=3.0, fill=0.8)          # a noisy sensor
+    maxima = image_maxima(truth, patterns)
+    gains = (exposure_gain(maxima[0], noise), exposure_gain(maxima[1], noise))
+    strategies, _ = build_strategies(bases, g, light, view, rng.uniform(0, 1, n), patterns, 7, sampling_steps=50)
+    measured = measure_band(truth, 0, 0, g.height, gains, patterns, g, noise, (0, 1))
+    noise_free = noise_free_band(truth, 0, 0, g.height, patterns, g)
+    row_max = truth.reshape(n, -1).max(1)
+    ref = BandTruth.of(truth)
+    noisy_err, floor_err = [], []
+    for s, recon, floor in reconstruct_strategies(strategies, 0, g.height, truth, 0, g, measured, noise_free):
+        if floor_kinds()[s.name] != FLOOR_COMPUTED:
+            assert floor is None, s.name                       # known floors (exact, or the truth's) not computed
+            continue
+        # the same strategy run by hand on noise-free inputs: single-light rows = the truth, multiplexed images
+        # = the truth through the patterns, demultiplexed = the truth (S-matrix demultiplexing is exact)
+        by_hand = reconstruct_band(s, 0, g.height, g.height, truth, truth, measure(truth, patterns=patterns), 0, g,
+                                   truth)
+        np.testing.assert_allclose(floor, by_hand, rtol=1e-3, atol=1e-4 * float(truth.max()), err_msg=s.name)
+        noisy_err.append(finish_scores(score_band(ref, recon), row_max)["rel_l2_log_y"])
+        floor_err.append(finish_scores(score_band(ref, floor), row_max)["rel_l2_log_y"])
+    assert len(floor_err) == sum(k == FLOOR_COMPUTED for k in floor_kinds().values()) == len(REGISTRY) - 3
+    assert np.mean(floor_err) <= np.mean(noisy_err)
+    assert floor_name("sparse-pinv-n100") != "sparse-pinv-n100"

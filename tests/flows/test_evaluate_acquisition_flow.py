@@ -8,6 +8,7 @@ import pytest
 
 
 def test_flow_writes_every_strategy_and_claim(acquisition_evaluation):
+    from btfcore.acquisition.strategies import FLOOR_COMPUTED, floor_kinds
     from tasks.evaluate_acquisition import strategy_names
 
     out, summary = acquisition_evaluation          # the tiny evaluation (tests/flows/conftest.py), run once
@@ -30,9 +31,27 @@ def test_flow_writes_every_strategy_and_claim(acquisition_evaluation):
         # projecting the truth on the ABRDF basis is the lower bound of reconstructing from its samples
         err = {name: s["rel_l2_log_y"] for name, s in record["scores"].items()}
         assert err["abrdf-projection"] < min(err["abrdf-pmap7"], err["abrdf-optimized"]), mid
+        # every strategy that reads a noisy measurement has its noise-free floor beside its scores
+        assert list(record["floors"]) == [n for n, k in floor_kinds().items() if k == FLOOR_COMPUTED], mid
+        for name, floor in record["floors"].items():
+            assert set(floor) == set(record["scores"][name]) and 0 < floor["rel_l2_log_y"] < float("inf"), name
+    # per strategy the mean floor (diverged floors left out), or what the floor is where it is known
+    floors = report["floors"]
+    assert list(floors) == strategy_names()
+    assert floors["demultiplexed"]["kind"] == "exact" and floors["abrdf-projection"]["kind"] == "noise-free input"
+    for name, floor in floors.items():
+        if floor["kind"] == FLOOR_COMPUTED:
+            left_out, total = floor["diverged_left_out"]
+            assert total == len(report["materials"]) and 0 < floor["rel_l2_log_y"] < float("inf"), name
+    # on average the noise-free floors lie below the noisy errors
+    computed = [n for n, f in floors.items() if f["kind"] == FLOOR_COMPUTED]
+    noisy = {n: sum(r["scores"][n]["rel_l2_log_y"] for r in report["materials"].values()) for n in computed}
+    floor_sum = {n: sum(r["floors"][n]["rel_l2_log_y"] for r in report["materials"].values()) for n in computed}
+    assert sum(floor_sum.values()) < sum(noisy.values())
     assert report["times"]["evaluated_device_s"]["sparse-multiplexed"] > 0
     html = (out / "report.html").read_text()
     assert "Claims of the thesis" in html and "Paper 1, Table 2" in html
+    assert "noise-free floor, rel. L2 log Y [%]" in html and "what the sensor noise and the dome" in html
     (mid, figs), = report["figures"].items()
     assert set(figs["renderings"]["psnr_db"]["point"]) == set(strategy_names())
     for name in figs["renderings"]["images"]["point"].values():

@@ -85,6 +85,8 @@ def test_chunked_reconstruction_equals_in_memory(tiny_eval, tmp_path, band_rows)
     from tasks.evaluate_acquisition import (
         BandScores, bands, create_reconstruction_store, demultiplex_views, evaluate_band, finish_scores, noisy_rows,
         reconstruct_band)
+    from btfcore.acquisition.band_evaluation import floor_name, noise_free_band
+    from btfcore.acquisition.strategies import FLOOR_COMPUTED
     from tasks.evaluate_acquisition.graph import _read_rows
 
     config, out, materials = tiny_eval
@@ -116,6 +118,14 @@ def test_chunked_reconstruction_equals_in_memory(tiny_eval, tmp_path, band_rows)
         assert got["mrmse"] == pytest.approx(mrmse(truth, ref), rel=1e-3), s.name
         assert got["mpsnr"] == pytest.approx(mpsnr(truth, ref), rel=1e-3, abs=1e-3), s.name
         assert got["mre"] == pytest.approx(mre(truth, ref), rel=1e-3), s.name
+        # the noise-free floor of every strategy that reads a noisy measurement, reduced over bands alike
+        floor = floor_name(s.name)
+        assert (floor in total) == (s.floor == FLOOR_COMPUTED), s.name
+        if floor in total:
+            noise_free = noise_free_band(truth, 0, 0, h, patterns, geometry)
+            whole_floor = reconstruct_band(s, 0, h, h, truth, *noise_free[1:3], 0, geometry, noise_free[3])
+            assert finish_scores(total[floor], row_max)["rel_l2_log_y"] == pytest.approx(
+                relative_error(truth, whole_floor.astype(np.float32), space="log_y"), rel=1e-3), s.name
 
 
 def test_denoising_reduces_the_demultiplexed_error(tiny_eval):
