@@ -577,14 +577,20 @@ def _io_args(args: argparse.Namespace) -> tuple[dict[str, str], dict[str, str]]:
 
 
 def _absolute_paths(args: argparse.Namespace, command: Command) -> None:
-    """Make the input and output paths of ``args`` absolute: the cluster's workers open them, and a
-    ``btf server``'s workers (or a batch system's) do not run in the folder the command was typed in."""
-    for dest in (*command.inputs, *command.outputs):
-        value = getattr(args, dest, None)
-        if isinstance(value, str) and value and "://" not in value:
-            setattr(args, dest, os.path.abspath(value))
-        elif isinstance(value, list):
-            setattr(args, dest, [os.path.abspath(v) if isinstance(v, str) and "://" not in v else v for v in value])
+    """Make the input paths that exist and every output path of ``args`` absolute: the cluster's workers
+    open them, and a ``btf server``'s workers (or a batch system's) do not run in the folder the command
+    was typed in. An input that does not exist (or a keyword such as ``--sampling ubo2014``) keeps what
+    the user typed, for the command's own message."""
+    def absolute(value: Any, output: bool) -> Any:
+        if not isinstance(value, str) or not value or "://" in value or not (output or os.path.exists(value)):
+            return value
+        return os.path.abspath(value)
+
+    for table, output in ((command.inputs, False), (command.outputs, True)):
+        for dest in table:
+            value = getattr(args, dest, None)
+            setattr(args, dest, [absolute(v, output) for v in value] if isinstance(value, list)
+                    else absolute(value, output))
 
 
 def _preflight(args: argparse.Namespace, command: Command) -> dict:
@@ -724,6 +730,17 @@ def _main(args: argparse.Namespace) -> int:
     if not command.on_cluster(args):
         return command.run(args)  # in this process: sample, plan, render, validate, export-exr, ...
 
+    summary = run_on_cluster(args, command, prepared, info)
+    print(json.dumps(summary, indent=2))
+    return 0
+
+
+def run_on_cluster(args: argparse.Namespace, command: Command, prepared: dict, info: bool = True) -> dict[str, Any]:
+    """Start the run's Prefect API and Dask cluster (:func:`flows.runtime.runtime`), run ``command``'s flow
+    on them and return its summary with the seconds it took; ``info`` prints the starting and ready
+    lines. The one place a command line runs on a cluster: ``btf`` and the deployments of
+    :mod:`flows.deploy` both call it."""
+    from flows.clusters import describe
     from flows.runtime import runtime
 
     if info:
@@ -731,15 +748,11 @@ def _main(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     with runtime(prepared["profile"]) as (profile, url, client):
         if info:
-            from flows.clusters import describe
-
             whose = " (the btf server's)" if client.cluster is None and profile.kind == "local" else ""
             say(f"{_label(args)}: Prefect API {url} and Dask cluster {client.scheduler.address}{whose} ready after "
                 f"{time.perf_counter() - start:.1f} s ({describe(profile, client)})")
         summary = command.flow(args, client.scheduler.address, prepared)
-    print(json.dumps({**summary, "seconds": round(time.perf_counter() - start, 2)}, indent=2))
-    return 0
-
+    return {**summary, "seconds": round(time.perf_counter() - start, 2)}
 
 if __name__ == "__main__":  # pragma: no cover
     sys.exit(main())

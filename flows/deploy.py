@@ -18,7 +18,6 @@ from __future__ import annotations
 import contextlib
 import io
 import json
-import time
 from pathlib import Path
 from typing import Any
 
@@ -29,12 +28,12 @@ from flows.progress import say
 
 def command_line(words: list[str], options: dict[str, Any], prefix: str = "") -> list[str]:
     """``btf`` arguments: ``words``, then ``--PREFIX-NAME VALUE`` for each option that is not ``None``
-    (``True``: the flag alone; ``False``: left out; ``cls``: ``--class``)."""
+    (``True``: the flag alone; ``False``: left out; ``material_class``: ``--class``)."""
     argv = list(words)
     for name, value in options.items():
         if value is None or value is False:
             continue
-        option = "--" + ("class" if name == "cls" else prefix + name.replace("_", "-"))
+        option = "--" + ("class" if name == "material_class" else prefix + name.replace("_", "-"))
         argv += [option] if value is True else [option, str(value)]
     return argv
 
@@ -50,8 +49,7 @@ def run_command(argv: list[str]) -> dict[str, Any]:
     flows.runtime.RuntimeUnavailable
         Prefect or the Dask cluster could not start.
     """
-    from flows.cli import COMMANDS, _label, _preflight, _starting_line, build_parser
-    from flows.runtime import runtime
+    from flows.cli import COMMANDS, _label, _preflight, build_parser, run_on_cluster
 
     usage = io.StringIO()
     try:
@@ -62,15 +60,7 @@ def run_command(argv: list[str]) -> dict[str, Any]:
     command = COMMANDS[args.command]
     label = _label(args)
     prepared = _preflight(args, command)
-    say(_starting_line(label, prepared["profile"]))
-    start = time.perf_counter()
-    with runtime(prepared["profile"]) as (profile, url, client):
-        from flows.clusters import describe
-
-        say(f"{label}: Prefect API {url} and Dask cluster {client.scheduler.address} ready after "
-            f"{time.perf_counter() - start:.1f} s ({describe(profile, client)})")
-        summary = command.flow(args, client.scheduler.address, prepared)
-    summary = {**summary, "profile": profile.path, "seconds": round(time.perf_counter() - start, 2)}
+    summary = {**run_on_cluster(args, command, prepared), "profile": prepared["profile"].path}
     say(f"{label}: done: {json.dumps(summary)}")
     return summary
 
@@ -125,7 +115,7 @@ def ingest(capture: str, out: str, cluster: str | None = None, white: str | None
 
 
 @flow(name="btf-reconstruct-run", log_prints=False)
-def reconstruct(measurement: str, model: str, cls: str, out: str, cluster: str | None = None,
+def reconstruct(measurement: str, model: str, material_class: str, out: str, cluster: str | None = None,
                 basis: str | None = None, method: str | None = None, lam: float | None = None,
                 k: int | None = None, white: str | None = None, white_albedo: float | None = None,
                 colour_matrix: str | None = None, overwrite: bool = False) -> dict[str, Any]:
@@ -134,7 +124,7 @@ def reconstruct(measurement: str, model: str, cls: str, out: str, cluster: str |
 
     Parameters
     ----------
-    measurement, model, cls, out : str
+    measurement, model, material_class, out : str
         Measurement (or BTF) store; ``btf build-db`` folder; material class of the basis; BTF store to write.
     cluster : str, optional
         Execution profile (``infra/*.yaml``) [default: ``$BTF_CLUSTER_CONFIG`` or ``infra/local.yaml``].
@@ -147,7 +137,7 @@ def reconstruct(measurement: str, model: str, cls: str, out: str, cluster: str |
         Replace another store at ``out`` once the new one is complete.
     """
     return run_command(command_line(["reconstruct", measurement], dict(
-        model=model, cls=cls, out=out, cluster=cluster, basis=basis, method=method, lam=lam, k=k, white=white,
+        model=model, material_class=material_class, out=out, cluster=cluster, basis=basis, method=method, lam=lam, k=k, white=white,
         white_albedo=white_albedo, colour_matrix=colour_matrix, overwrite=overwrite)))
 
 

@@ -494,6 +494,7 @@ class WorkerSetup(WorkerPlugin):
 
     def __init__(self, environ: dict[str, str] | None = None):
         self.environ = dict(environ or {})
+        self.client_pid = os.getpid()  # in-process (threaded) workers share the client's environment
 
     def setup(self, worker: Any) -> None:
         import importlib
@@ -503,7 +504,8 @@ class WorkerSetup(WorkerPlugin):
 
         from flows.clusters import LATE_ENVIRON_KEYS
 
-        os.environ.update({key: value for key, value in self.environ.items() if key in LATE_ENVIRON_KEYS})
+        if os.getpid() != self.client_pid:  # never in the client's own process: a run's URL would outlive it
+            os.environ.update({key: value for key, value in self.environ.items() if key in LATE_ENVIRON_KEYS})
         cv2.setNumThreads(1)
         threadpool_limits(1)
         quiet_task_failures()

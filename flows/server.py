@@ -176,6 +176,11 @@ def server_cluster(settings: dict[str, Any], path: Path | None = None) -> str | 
         print(f"btf: ignoring the btf server's Dask cluster ({status['state_file']}): {status['reason']} "
               "(`btf server stop` and `btf server start` restart it)", file=sys.stderr)
         return None
+    if not str(status["address"]).startswith(("tcp://", "tls://")):
+        print(f"btf: not using the btf server's Dask cluster {status['address']}: its workers are threads of "
+              "the server's process, which another process cannot reach (a profile with processes: true can be "
+              "shared)", file=sys.stderr)
+        return None
     differ = [_SETTING_NAMES.get(key, key) for key in settings if (status["settings"] or {}).get(key) != settings[key]]
     if differ:
         print(f"btf: not using the btf server's Dask cluster {status['address']}: this run's "

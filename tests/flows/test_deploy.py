@@ -19,6 +19,7 @@ from pathlib import Path
 
 import httpx
 import pytest
+from btf_env import btf_environ
 import yaml
 
 from flows.server import is_alive, start_server, stop_server
@@ -30,10 +31,7 @@ THREADED = "cluster: {kind: local, n_workers: 1, threads_per_worker: 1, processe
 RUN_PROFILE = "cluster: {kind: local, n_workers: 1, threads_per_worker: 1, processes: false, memory_limit: 2GiB}\n"
 
 
-def _environ(state_home: Path, **extra: str) -> dict[str, str]:
-    """A subprocess' environment: this state folder, no API or profile chosen by the session."""
-    environ = {key: value for key, value in os.environ.items() if key not in ("PREFECT_API_URL", "BTF_CLUSTER_CONFIG")}
-    return {**environ, "XDG_STATE_HOME": str(state_home), **extra}
+_environ = btf_environ
 
 
 def _children(pid: int) -> list[int]:
@@ -222,8 +220,17 @@ def test_bad_deployment_files_and_no_server_are_named(tmp_path, monkeypatch, cap
     from flows.cli import main
     from flows.schedule import read_deployments
 
-    assert [e["name"] for e in read_deployments(REPO / "prefect.yaml")] == ["build-db", "ingest", "reconstruct",
-                                                                            "evaluate-acquisition"]
+    shipped = read_deployments(REPO / "prefect.yaml")
+    assert [e["name"] for e in shipped] == ["build-db", "ingest", "reconstruct", "evaluate-acquisition"]
+    from prefect.flows import load_flow_from_entrypoint
+
+    from flows.profiles import load_profile
+
+    for entry in shipped:  # every parameter is one of its flow's, every profile loads
+        entry_flow = load_flow_from_entrypoint(str(REPO / entry["entrypoint"]))
+        assert set(entry["parameters"]) <= set(entry_flow.parameters.properties), entry["name"]
+        load_profile(REPO / entry["parameters"]["cluster"])
+    assert [s["cron"] for s in shipped[0]["schedules"]] == ["0 3 * * *"]
     bad = tmp_path / "prefect.yaml"
     cases = [
         ("deployments: {name: x}\n", "no 'deployments' list"),
@@ -251,7 +258,8 @@ def test_bad_deployment_files_and_no_server_are_named(tmp_path, monkeypatch, cap
 def test_a_deployment_runs_the_command_line():
     from flows.deploy import command_line
 
-    assert command_line(["reconstruct", "m.zarr"], dict(model="M", cls="cloth", out="o.zarr", lam=0.5, k=None,
+    assert command_line(["reconstruct", "m.zarr"], dict(model="M", material_class="cloth", out="o.zarr", lam=0.5,
+                                                         k=None,
                                                          overwrite=True)) == [
         "reconstruct", "m.zarr", "--model", "M", "--class", "cloth", "--out", "o.zarr", "--lam", "0.5", "--overwrite"]
     assert command_line([], dict(device="tiny", materials_per_class=2, seed=None), prefix="eval-") == [

@@ -19,6 +19,7 @@ import time
 from pathlib import Path
 
 import pytest
+from btf_env import btf_environ
 
 from flows.server import (cluster_state_file, is_alive, recorded_server_url, running_server, server_cluster,
                           server_status, state_file, stop_server)
@@ -26,11 +27,7 @@ from flows.server import (cluster_state_file, is_alive, recorded_server_url, run
 REPO = Path(__file__).resolve().parents[2]
 
 
-def _environ(state_home: Path) -> dict[str, str]:
-    """A ``btf`` subprocess' environment: this state folder, no API or profile chosen by the session."""
-    environ = {key: value for key, value in os.environ.items()
-               if key not in ("PREFECT_API_URL", "BTF_CLUSTER_CONFIG")}
-    return {**environ, "XDG_STATE_HOME": str(state_home)}
+_environ = btf_environ
 
 
 def _btf(state_home: Path, *args: str, timeout: float = 120) -> subprocess.CompletedProcess:
