@@ -754,5 +754,6 @@ def run_on_cluster(args: argparse.Namespace, command: Command, prepared: dict, i
         summary = command.flow(args, client.scheduler.address, prepared)
     return {**summary, "seconds": round(time.perf_counter() - start, 2)}
 
+
 if __name__ == "__main__":  # pragma: no cover
     sys.exit(main())

@@ -346,15 +346,14 @@ def dask_client(profile: Profile, prefect_url: str | None = None) -> Iterator[An
     from flows.server import server_cluster
 
     environ = worker_environ(prefect_url)
+    client = None
     if profile.kind == "address":
-        client = _connect(profile, environ)
-    else:
-        address = server_cluster(cluster_settings(profile, environ)) if profile.kind == "local" else None
-        client = Client(address, timeout="10s") if address else None
-    if client is not None:
+        client = _connect(profile, environ)  # registers WorkerSetup before it checks the workers' environment
+    elif profile.kind == "local" and (address := server_cluster(lambda: cluster_settings(profile, environ))):
+        client = Client(address, timeout="10s")
+        client.register_plugin(WorkerSetup(environ), name="btf-worker-setup")
+    if client is not None:  # a cluster this run did not start: close only the client
         try:
-            if profile.kind != "address":  # _connect registered it before checking the workers' environment
-                client.register_plugin(WorkerSetup(environ), name="btf-worker-setup")
             yield client
         finally:
             with contextlib.suppress(Exception):

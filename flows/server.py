@@ -30,6 +30,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -162,9 +163,10 @@ def _runner_status(path: Path | None = None) -> dict[str, Any] | None:
     return _service_status(runner_state_file(path), COMMAND_RUNNER, ("pid", "socket"))
 
 
-def server_cluster(settings: dict[str, Any], path: Path | None = None) -> str | None:
+def server_cluster(settings: Callable[[], dict[str, Any]], path: Path | None = None) -> str | None:
     """The scheduler address of the ``btf server``'s Dask cluster where it runs and was started with
-    ``settings`` (:func:`flows.runtime.cluster_settings` of this run), else None.
+    ``settings()`` (:func:`flows.runtime.cluster_settings` of this run, computed only where a cluster
+    runs: it hashes the code), else None.
 
     A run whose settings differ (another profile, log level or Prefect API, edited code) starts its own
     cluster, with one line on stderr that says which setting differs and how to restart the server's.
@@ -181,7 +183,8 @@ def server_cluster(settings: dict[str, Any], path: Path | None = None) -> str | 
               "the server's process, which another process cannot reach (a profile with processes: true can be "
               "shared)", file=sys.stderr)
         return None
-    differ = [_SETTING_NAMES.get(key, key) for key in settings if (status["settings"] or {}).get(key) != settings[key]]
+    wanted = settings()
+    differ = [_SETTING_NAMES.get(key, key) for key in wanted if (status["settings"] or {}).get(key) != wanted[key]]
     if differ:
         print(f"btf: not using the btf server's Dask cluster {status['address']}: this run's "
               f"{' and '.join(differ)} {'differ' if len(differ) > 1 else 'differs'} from the ones it was started with, so this run starts its own "

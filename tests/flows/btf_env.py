@@ -16,3 +16,19 @@ def btf_environ(state_home: Path, **extra: str) -> dict[str, str]:
     """This process' environment without :data:`NOT_INHERITED`, with ``XDG_STATE_HOME`` and ``extra``."""
     environ = {key: value for key, value in os.environ.items() if key not in NOT_INHERITED}
     return {**environ, "XDG_STATE_HOME": str(state_home), **extra}
+
+
+def live_processes(*, parent: int | None = None, group: int | None = None) -> list[int]:
+    """Process ids of live (not zombie) processes whose parent is ``parent`` or whose process group is
+    ``group`` (read from ``/proc``)."""
+    found = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rpartition(")")[2].split()
+        except OSError:
+            continue
+        if fields[0] in ("Z", "X"):
+            continue
+        if (parent is not None and int(fields[1]) == parent) or (group is not None and int(fields[2]) == group):
+            found.append(int(stat.parent.name))
+    return found

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import httpx
 import pytest
-from btf_env import btf_environ
+from btf_env import btf_environ, live_processes
 import yaml
 
 from flows.server import is_alive, start_server, stop_server
@@ -29,22 +29,6 @@ REPO = Path(__file__).resolve().parents[2]
 THREADED = "cluster: {kind: local, n_workers: 1, threads_per_worker: 1, processes: false}\n"
 #: The runs' profile: threaded too, but not the server's, whose in-process cluster no run can join.
 RUN_PROFILE = "cluster: {kind: local, n_workers: 1, threads_per_worker: 1, processes: false, memory_limit: 2GiB}\n"
-
-
-_environ = btf_environ
-
-
-def _children(pid: int) -> list[int]:
-    """Process ids whose parent is ``pid`` (a worker's flow runs lead their own sessions)."""
-    found = []
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rpartition(")")[2].split()
-        except OSError:
-            continue
-        if int(fields[1]) == pid:
-            found.append(int(stat.parent.name))
-    return found
 
 
 def _stop_group(pid: int) -> None:
@@ -66,7 +50,7 @@ def btf_server(tmp_path_factory):
     root = tmp_path_factory.mktemp("deploy-server")
     profile = root / "threaded.yaml"
     profile.write_text(THREADED)
-    environ = _environ(root / "state", PREFECT_HOME=str(root / "prefect-home"), PREFECT_UI_ENABLED="false")
+    environ = btf_environ(root / "state", PREFECT_HOME=str(root / "prefect-home"), PREFECT_UI_ENABLED="false")
     saved = dict(os.environ)
     os.environ.update(environ)  # the server's processes inherit it
     try:
@@ -172,7 +156,7 @@ def test_a_scheduled_deployment_fires_on_a_worker_and_builds_incrementally(btf_s
     flow_runs: set[int] = set()
     try:
         def finished(deployment_id: str, n: int) -> list[dict] | None:
-            flow_runs.update(_children(worker.pid))
+            flow_runs.update(live_processes(parent=worker.pid))
             runs = [r for r in _runs_of(url, deployment_id) if r["state_type"] in ("COMPLETED", "FAILED", "CRASHED")]
             return runs if len(runs) >= n else None
 
@@ -184,7 +168,7 @@ def test_a_scheduled_deployment_fires_on_a_worker_and_builds_incrementally(btf_s
 
         # the schedule fires; once a second run starts, no third is wanted
         def second_started() -> bool:
-            flow_runs.update(_children(worker.pid))
+            flow_runs.update(live_processes(parent=worker.pid))
             return sum(r["state_type"] in ("RUNNING", "COMPLETED", "FAILED", "CRASHED")
                        for r in _runs_of(url, scheduled["id"])) >= 2
 

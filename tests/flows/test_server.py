@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 
 import pytest
-from btf_env import btf_environ
+from btf_env import btf_environ, live_processes
 
 from flows.server import (cluster_state_file, is_alive, recorded_server_url, running_server, server_cluster,
                           server_status, state_file, stop_server)
@@ -27,25 +27,9 @@ from flows.server import (cluster_state_file, is_alive, recorded_server_url, run
 REPO = Path(__file__).resolve().parents[2]
 
 
-_environ = btf_environ
-
-
 def _btf(state_home: Path, *args: str, timeout: float = 120) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "flows.cli", *args], cwd=REPO, env=_environ(state_home),
+    return subprocess.run([sys.executable, "-m", "flows.cli", *args], cwd=REPO, env=btf_environ(state_home),
                           capture_output=True, text=True, timeout=timeout)
-
-
-def _group_members(pgid: int) -> list[int]:
-    """Live (not zombie) processes of process group ``pgid``."""
-    members = []
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rpartition(")")[2].split()
-        except OSError:
-            continue
-        if int(fields[2]) == pgid and fields[0] not in ("Z", "X"):
-            members.append(int(stat.parent.name))
-    return members
 
 
 @pytest.fixture()
@@ -125,7 +109,7 @@ def test_server_start_status_is_used_then_stop_leaves_no_process(state_home, tmp
     assert cluster["status"] == "running" and cluster["address"].startswith("tcp://127.0.0.1:")
     capture = next(out.glob("*.zarr")).relative_to(tmp_path)
     shared = subprocess.run([sys.executable, "-m", "flows.cli", "--no-progress", "ingest", str(capture), "--out",
-                             "shared.zarr"], cwd=tmp_path, env={**_environ(state_home), "PYTHONPATH": str(REPO)},
+                             "shared.zarr"], cwd=tmp_path, env={**btf_environ(state_home), "PYTHONPATH": str(REPO)},
                             capture_output=True, text=True, timeout=300)
     assert shared.returncode == 0, shared.stderr
     assert f"Dask cluster {cluster['address']} (the btf server's) ready" in shared.stderr, shared.stderr
@@ -151,7 +135,7 @@ def test_server_start_status_is_used_then_stop_leaves_no_process(state_home, tmp
     # Ctrl-C (SIGINT to the command) reaches the forked run: it stops as a run in its own process does
     slow = subprocess.Popen([sys.executable, "-m", "flows.cli", "--no-progress", "simulate", "--device", "tiny",
                              "--materials", "6", "--out", str(tmp_path / "slow")], cwd=REPO,
-                            env=_environ(state_home), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            env=btf_environ(state_home), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     lines = []
     for line in slow.stderr:
         lines.append(line)
@@ -165,8 +149,8 @@ def test_server_start_status_is_used_then_stop_leaves_no_process(state_home, tmp
 
     stopped = _btf(state_home, "server", "stop")
     assert stopped.returncode == 0 and json.loads(stopped.stdout)["stopped_now"] is True
-    assert not is_alive(state["pid"]) and _group_members(state["pid"]) == []
-    assert not is_alive(cluster["pid"]) and _group_members(cluster["pid"]) == []
+    assert not is_alive(state["pid"]) and live_processes(group=state["pid"]) == []
+    assert not is_alive(cluster["pid"]) and live_processes(group=cluster["pid"]) == []
     assert not Path(cluster["state_file"]).exists()
     assert not is_alive(runner["pid"]) and not Path(runner["state_file"]).exists()
     assert not Path(runner["socket"]).exists()
@@ -197,7 +181,7 @@ def test_a_stale_cluster_state_file_is_ignored_and_said_so(state_home, capsys):
     dead = subprocess.Popen([sys.executable, "-c", "pass"])
     dead.wait()
     path.write_text(json.dumps({"address": "tcp://127.0.0.1:9", "pid": dead.pid, "settings": {}}))
-    assert server_cluster({"cluster": {}}) is None
+    assert server_cluster(lambda: {"cluster": {}}) is None
     line = capsys.readouterr().err
     assert line.count("\n") == 1 and "ignoring the btf server's Dask cluster" in line and "not running" in line
     assert server_status()["cluster"]["status"] == "stale"
