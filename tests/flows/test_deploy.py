@@ -183,16 +183,25 @@ def test_a_scheduled_deployment_fires_on_a_worker_and_builds_incrementally(btf_s
         runs = _wait_for("two scheduled runs finished", lambda: finished(scheduled["id"], 2), 120, logs,
                          lambda: _runs_of(url, scheduled["id"]))
     finally:
+        deadline = time.monotonic() + 30  # a finished run's process sends its last logs as it exits
+        while any(is_alive(pid) for pid in flow_runs) and time.monotonic() < deadline:
+            time.sleep(0.5)
         _stop_group(worker.pid)
         for pid in flow_runs:
             if is_alive(pid):
                 _stop_group(pid)
     assert all(r["state_type"] == "COMPLETED" for r in runs[:2]), [r["state"] for r in runs]
     assert all(r["auto_scheduled"] for r in runs[:2])
+
     # the first run fitted both materials, the second nothing new, and the report says so
-    messages = [[log["message"] for log in _api(url, "POST", "/logs/filter",
-                                                {"logs": {"flow_run_id": {"any_": [r["id"]]}}, "limit": 200})]
-                for r in runs[:2]]
+    def messages_of(run: dict) -> list[str]:
+        return [log["message"] for log in _api(url, "POST", "/logs/filter",
+                                               {"logs": {"flow_run_id": {"any_": [run["id"]]}}, "limit": 200})]
+
+    deadline = time.monotonic() + 30  # the API stores a run's logs in batches, after its state
+    while (not any("done" in m for m in messages_of(runs[1]))) and time.monotonic() < deadline:
+        time.sleep(0.5)
+    messages = [messages_of(r) for r in runs[:2]]
     assert any("fitted 2 of 2 materials" in m for m in messages[0]), messages[0]
     assert any("nothing new to fit" in m for m in messages[1]), messages[1]
     report = json.loads((model / "report.json").read_text())
