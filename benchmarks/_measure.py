@@ -72,3 +72,13 @@ class WorkerRSS:
         self._stop.set()
         self._thread.join()
         self.restarted = set(self.client.scheduler_info()["workers"]) != self._workers
+
+
+def torch_gemm_rate(n: int = 2048, repeats: int = 3) -> float:
+    """GFLOP/s of a float32 torch ``(n, n) @ (n, n)`` GEMM at torch's current thread count, best of ``repeats``."""
+    import torch
+
+    g = torch.Generator().manual_seed(0)
+    A, B = torch.randn((n, n), generator=g), torch.randn((n, n), generator=g)
+    C = torch.empty((n, n))
+    return 2.0 * n**3 / best_seconds(lambda: torch.matmul(A, B, out=C), repeats) / 1e9

@@ -509,13 +509,24 @@ class Device:
               sample centre stays at the centre of the new ROI;
             * ``turntable_angle_deg``: any subset or new set of angles;
             * ``camera_indices`` / ``led_indices``: keep only these cameras /
-              LEDs (positions, poses and gains follow).
+              LEDs (positions, poses and gains follow);
+            * ``pixel_scale``: an int ``f >= 1``, the same dome whose cameras
+              have ``f`` times the pixels along each axis (applied after the
+              other overrides): ``K' = S K`` with
+              ``S = [[f, 0, (f - 1) / 2], [0, f, (f - 1) / 2], [0, 0, 1]]`` and
+              ``roi_shape`` times ``f``, so that a pixel of the original camera
+              covers exactly the ``f x f`` block of the new camera's pixels
+              (pixel centre ``x`` -> ``f x + (f - 1) / 2``). The sensor, and
+              its PSF in raw pixels, stay as they are.
 
         Returns
         -------
         device : Device
         """
         kw = dict(kw)
+        pixel_scale = kw.pop("pixel_scale", None)
+        if pixel_scale is not None:
+            return self.with_overrides(**kw)._with_pixel_scale(pixel_scale)
         sensor = kw.pop("sensor", None)
         pattern = kw.pop("bayer_pattern", None)
         if isinstance(sensor, dict):
@@ -546,6 +557,16 @@ class Device:
         if unknown:
             raise TypeError(f"unknown Device field(s) {sorted(unknown)}")
         return dataclasses.replace(self, **kw)
+
+    def _with_pixel_scale(self, f: Any) -> "Device":
+        """The same dome with ``f`` times the camera pixels along each axis (:meth:`with_overrides`)."""
+        if isinstance(f, bool) or not isinstance(f, (int, np.integer)) or f < 1:
+            raise ValueError(f"pixel_scale must be an integer >= 1, got {f!r}")
+        f = int(f)
+        if f == 1:
+            return self
+        return dataclasses.replace(self, camera_K=pixel_scale_matrix(f) @ self.camera_K,   # eq. K' = S K
+                                   roi_shape=(f * self.roi_shape[0], f * self.roi_shape[1]))
 
     def to_json(self) -> dict[str, Any]:
         """Plain-JSON dict (arrays as nested lists)."""
@@ -587,6 +608,17 @@ def _led_gains(name: str, n_leds: int) -> np.ndarray:
     intensity = rng.normal(1.0, 0.05, size=(n_leds, 1))
     colour = rng.normal(1.0, 0.02, size=(n_leds, 3))
     return np.clip(intensity * colour, 0.5, 1.5)
+
+
+def pixel_scale_matrix(factor: float) -> np.ndarray:
+    """``S`` with ``x' = S x`` taking pixel coordinates of a camera to those of one with ``factor`` times
+    the pixels per axis: ``[[f, 0, (f - 1) / 2], [0, f, (f - 1) / 2], [0, 0, 1]]``, so that a pixel of the
+    first covers exactly the ``f x f`` block of the second (pixel centre ``x -> f x + (f - 1) / 2``; a
+    factor below 1 is the area-down-sampled camera)."""
+    f = float(factor)
+    if not f > 0:
+        raise ValueError(f"the pixel scale factor must be > 0, got {factor!r}")
+    return np.array([[f, 0.0, (f - 1) / 2.0], [0.0, f, (f - 1) / 2.0], [0.0, 0.0, 1.0]])
 
 
 def _fit_roi(K: np.ndarray, R: np.ndarray, t: np.ndarray, angles_deg: np.ndarray, s: float,

@@ -76,6 +76,10 @@ def _add_simulation_options(p: argparse.ArgumentParser) -> None:
                    help="simulate only the first N turntable positions (a pruned run)")
     p.add_argument("--psf-sigma", type=float, default=0.0, metavar="PX",
                    help="Gaussian point spread function of the cameras, sigma in raw pixels [default: 0, off]")
+    p.add_argument("--camera-scale", type=int, default=1, metavar="N",
+                   help="cameras with N times the dome's pixels along each axis (a pixel of the dome's camera is "
+                        "an N x N block): a larger region of interest, for the super-resolution evaluation "
+                        "[default: 1]")
 
 
 def simulate(p: argparse.ArgumentParser) -> None:
@@ -117,6 +121,9 @@ def ingest(p: argparse.ArgumentParser) -> None:
     _add_calibration(p)
     p.add_argument("--overwrite", action="store_true",
                    help="recompute and replace the output at --out (kept until the new one is complete and checked)")
+    p.add_argument("--keep-roi", action="store_true",
+                   help="also keep each view's HDR radiance region of interest before rectification (array roi "
+                        "and the views' homography in the BTF store), the input of super-resolution")
 
 
 def resample(p: argparse.ArgumentParser) -> None:
@@ -178,10 +185,12 @@ def export_exr(p: argparse.ArgumentParser) -> None:
 
 def evaluate(p: argparse.ArgumentParser) -> None:
     """The arguments of ``btf evaluate``."""
-    p.add_argument("what", choices=("ingest", "acquisition"),
+    p.add_argument("what", choices=("ingest", "acquisition", "superres"),
                    help="ingest: a BTF store from `btf ingest` against its capture's truth; acquisition: leave-one-out "
                         "evaluation of sparse, multiplexed and sparse+multiplexed acquisition on a simulated truth "
-                        "database (--db, --out; docs/evaluation.md)")
+                        "database (--db, --out; docs/evaluation.md); superres: bicubic, Dong et al. and the ESPCN "
+                        "against the measured and the exact 2x truth on simulated leather and cloth (--out; "
+                        "docs/super-resolution.md)")
     p.add_argument("--truth", default=None, metavar="SIM", help="ingest: simulated capture store (with truth/)")
     p.add_argument("--btf", default=None, metavar="BTF", help="ingest: BTF store from `btf ingest`")
     p.add_argument("--db", default=None, metavar="TRUTH_DB_DIR",
@@ -201,6 +210,9 @@ def evaluate(p: argparse.ArgumentParser) -> None:
                         "strategy and its renderings [default: 1]")
     p.add_argument("--report", default="report.json", metavar="PATH",
                    help="where to write the metrics [default: report.json]")
+    from flows.superres_cli import add_evaluate_superres_arguments
+
+    add_evaluate_superres_arguments(p)
 
 
 def validate(p: argparse.ArgumentParser) -> None:

@@ -35,6 +35,9 @@ from flows.acquisition_cli import (PLAN_HELP, RENDER_HELP, SAMPLE_HELP, add_plan
                                    add_sample_arguments, run_plan, run_render, run_sample)
 from flows.progress import say
 from flows.server import CHILD_ENV, SERVER_HELP, add_server_arguments, run_server
+from flows.superres_cli import (SUPERRES_HELP, add_superres_arguments, evaluate_superres_flow, prepare_superres,
+                                run_superres_train, superres_apply_flow, superres_evaluation_config,
+                                superres_on_cluster)
 
 EXIT_FAILED = 1
 EXIT_BAD_INPUT = 2
@@ -152,7 +155,8 @@ def _simulation_config(args: argparse.Namespace):
 
     kwargs = dict(device=args.device, n_materials=args.materials, seed=args.seed,
                   illumination=args.illumination, bayer_pattern=args.bayer,
-                  texture_size=args.texture_size, n_turntable=args.turntable, psf_sigma_px=args.psf_sigma)
+                  texture_size=args.texture_size, n_turntable=args.turntable, psf_sigma_px=args.psf_sigma,
+                  camera_scale=args.camera_scale)
     if args.classes:
         kwargs["classes"] = tuple(c.strip() for c in args.classes.split(",") if c.strip())
     if getattr(args, "plan", None):
@@ -293,12 +297,18 @@ def _prepare_simulate(args: argparse.Namespace, prepared: dict) -> None:
     check_outputs(prepared["config"], args.out, args.overwrite)
 
 
-def _is_acquisition(args: argparse.Namespace) -> bool:
-    return args.what == "acquisition"
+def _evaluate_on_cluster(args: argparse.Namespace) -> bool:
+    return args.what in ("acquisition", "superres")
 
 
 def _prepare_evaluate(args: argparse.Namespace, prepared: dict) -> None:
-    prepared["config"] = _evaluation_config(args)  # acquisition: its scale is checked before a cluster starts
+    # the evaluation's scale is checked before a cluster starts
+    prepared["config"] = superres_evaluation_config(args) if args.what == "superres" else _evaluation_config(args)
+
+
+def _evaluate_flow(args: argparse.Namespace, address: str, prepared: dict) -> dict:
+    flow = evaluate_superres_flow if args.what == "superres" else _evaluate_acquisition_flow
+    return flow(args, address, prepared)
 
 
 def _prepare_reconstruct(args: argparse.Namespace, prepared: dict) -> None:
@@ -341,7 +351,8 @@ def _prepare_ingest(args: argparse.Namespace, prepared: dict) -> None:
     from tasks.radiometric import load_calibration
 
     prepared["calibration"] = load_calibration(args.white, args.white_albedo, args.colour_matrix)
-    check_ingest(args.capture, args.out, overwrite=args.overwrite, calibration=prepared["calibration"])
+    check_ingest(args.capture, args.out, overwrite=args.overwrite, calibration=prepared["calibration"],
+                 keep_roi=args.keep_roi)
 
 
 # --------------------------------------------------------------------------- the flows: a JSON summary each
@@ -383,7 +394,7 @@ def _ingest_flow(args: argparse.Namespace, address: str, prepared: dict) -> dict
 
     return ingest_flow(args.capture, args.out, address, overwrite=args.overwrite, progress=not args.no_progress,
                        white=args.white, white_albedo=args.white_albedo, colour_matrix=args.colour_matrix,
-                       calibration=prepared.get("calibration"))
+                       calibration=prepared.get("calibration"), keep_roi=args.keep_roi)
 
 
 def _resample_flow(args: argparse.Namespace, address: str, prepared: dict) -> dict:
@@ -505,7 +516,7 @@ COMMANDS: dict[str, Command] = {command.name: command for command in (
             description="Compare a result with the ground truth of a simulated capture and print the metrics as "
                         "JSON; they are also written to --report.",
             add_arguments=arguments.evaluate, run=_evaluate, prepare=_prepare_evaluate,
-            flow=_evaluate_acquisition_flow, cluster_when=_is_acquisition,
+            flow=_evaluate_flow, cluster_when=_evaluate_on_cluster,
             inputs={"btf": "--btf", "db": "DB", "truth": "--truth"},
             outputs={"out": "--out", "report": "--report"}),
     Command("validate", help="check stores and list every problem",
@@ -538,6 +549,10 @@ COMMANDS: dict[str, Command] = {command.name: command for command in (
     Command("render", help="render a BTF store on a sphere, cylinder or plane to a PNG",
             description=RENDER_HELP, raw_description=True, add_arguments=add_render_arguments, run=run_render,
             inputs={"btf": "BTF", "env": "--env"}),
+    Command("superres", help="super-resolution: train the per-image CNN, or apply it to a BTF store at 2x",
+            description=SUPERRES_HELP, raw_description=True, add_arguments=add_superres_arguments,
+            run=run_superres_train, prepare=prepare_superres, flow=superres_apply_flow,
+            cluster_when=superres_on_cluster, inputs={"btf": "BTF", "model": "--model"}),
     Command("cluster", help="print the cluster resource of an execution profile (kubernetes: for kubectl)",
             description="`btf cluster spec PROFILE` prints the DaskCluster resource that a kubernetes execution "
                         "profile creates (the dask-kubernetes operator's spec, with the worker environment), as YAML "

@@ -43,8 +43,9 @@ def calibration_stage(white: str | None, white_albedo: float, colour_matrix: str
 
 @task(name="ingest-views", **RETRY_ONCE, cache_policy=NO_CACHE)
 def ingest_stage(capture: str, out: str, scheduler_address: str, overwrite: bool, progress: bool,
-                 calibration=None) -> dict[str, Any]:
-    """Ingest the views; a replacement of another ingest's output stays staged (not committed)."""
+                 calibration=None, keep_roi: bool = False) -> dict[str, Any]:
+    """Ingest the views (with ``keep_roi`` also their regions of interest); a replacement of another
+    ingest's output stays staged (not committed)."""
     from distributed import Client
 
     from flows.progress import progress_bar
@@ -53,7 +54,7 @@ def ingest_stage(capture: str, out: str, scheduler_address: str, overwrite: bool
     bar, update = progress_bar("ingest", progress, unit="view")
     with bar, Client(scheduler_address, set_as_default=False) as client:
         return ingest_capture(capture, out, client, overwrite=overwrite, calibration=calibration, progress=update,
-                              commit=False)
+                              commit=False, keep_roi=keep_roi)
 
 
 @task(name="commit-staged-output", cache_policy=NO_CACHE)
@@ -84,10 +85,13 @@ def ingest_validity_stage(capture: str, out: str) -> dict[str, Any]:
 @flow(name="btf-ingest", log_prints=False)
 def ingest_flow(capture: str, out: str, scheduler_address: str, overwrite: bool = False,
                 progress: bool = True, white: str | None = None, white_albedo: float = 0.99,
-                colour_matrix: str | None = None, calibration: Any = None) -> dict[str, Any]:
+                colour_matrix: str | None = None, calibration: Any = None,
+                keep_roi: bool = False) -> dict[str, Any]:
     """Capture store -> BTF store (HDR, demosaic, rectify, demultiplex per view; with ``white``
     and/or ``colour_matrix`` also the radiometric correction of :mod:`tasks.radiometric`, or with
     ``calibration`` the one already loaded from them, as ``btf ingest`` does before its cluster starts).
+    With ``keep_roi`` (``btf ingest --keep-roi``) the store also keeps each view's HDR radiance regions
+    of interest before rectification (docs/btf-store.md, "Regions of interest").
 
     Writes ``<out stem>.report.json`` beside the BTF store (never the folder's
     ``report.json``, which may belong to the simulation that made the capture).
@@ -108,7 +112,7 @@ def ingest_flow(capture: str, out: str, scheduler_address: str, overwrite: bool 
 
     if calibration is None:
         calibration = calibration_stage(white, white_albedo, colour_matrix)
-    stage = ingest_stage(capture, out, scheduler_address, overwrite, progress, calibration)
+    stage = ingest_stage(capture, out, scheduler_address, overwrite, progress, calibration, keep_roi)
     store = str(staging_path(out)) if stage["staged"] else out
     validity = ingest_validity_stage(capture, store)
     report = {"report": "btf-ingest", "capture": capture, "out": out, "stages": {"ingest": stage},

@@ -14,6 +14,11 @@ The BTF store (``btf-texture`` 1.0, :mod:`tasks.stores.btf`, docs/btf-store.md) 
 * attrs: schema, version, units, source capture and its config hash, settings,
   ``complete``.
 
+With ``keep_roi`` (``btf ingest --keep-roi``) the store also holds each view's HDR radiance region of
+interest before rectification (``roi``, ``(n_lv, rows, cols, 3)`` float32, the whole raw frame of the
+view demosaicked, demultiplexed and calibrated like the textures, SR paper §4) and the views'
+``homography`` (sample metres -> region pixel); docs/btf-store.md, "Regions of interest".
+
 With a :class:`tasks.radiometric.Calibration` (``btf ingest --white``) the
 textures are divided by each LED's gain from a white standard and mapped by
 the colour matrix; the store then holds ``led_gain`` (and ``colour_matrix``)
@@ -60,7 +65,7 @@ from tasks.measurement import (
 from tasks.radiometric import CALIBRATED_UNITS, Calibration
 from tasks.staging import staged_target, staging_path, store_attrs
 from tasks.staging import commit_staged as _commit_staged
-from tasks.stores import CaptureMetadata, CaptureStore, open_capture_store
+from tasks.stores import CaptureMetadata, CaptureStore, open_capture_store, write_chunk_aligned
 from tasks.stores.btf import (
     LV_ORDER,
     SCHEMA_NAME,
@@ -91,27 +96,36 @@ __all__ = [
 ]
 
 
-def ingest_hash(capture: CaptureStore, settings: IngestSettings, calibration: Calibration | None = None) -> str:
-    """What an ingest output depends on: the capture's config hash, the settings, the calibration."""
+def ingest_hash(capture: CaptureStore, settings: IngestSettings, calibration: Calibration | None = None,
+                keep_roi: bool = False) -> str:
+    """What an ingest output depends on: the capture's config hash, the settings, the calibration and,
+    only when kept, the regions of interest (so the stores written without them keep their hashes)."""
     payload = {"capture": capture.group.attrs.get("provenance", {}).get("config_hash"),
                "settings": asdict(settings), "schema": f"{SCHEMA_NAME}/{SCHEMA_VERSION}",
                "calibration": None if calibration is None else calibration.key()}
+    if keep_roi:
+        payload["keep_roi"] = True
     return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:16]
 
 
-def _ingest_target(out: Path, key: str, overwrite: bool) -> tuple[Path, bool]:
+def _ingest_target(out: Path, key: str, overwrite: bool, keep_roi: bool = False) -> tuple[Path, bool]:
     """The store this ingest writes and whether it is the staging store of a replacement
     (:func:`tasks.staging.staged_target`, keyed by ``ingest_hash``)."""
     note = (f" (the new store is then built in {staging_path(out)} and replaces {out.name} only once it is "
             "complete and checked)")
-    return staged_target(out, "ingest_hash", key, overwrite, lambda attrs: _refusal(out, attrs, key, note))
+    return staged_target(out, "ingest_hash", key, overwrite,
+                         lambda attrs: _refusal(out, attrs, key, note, keep_roi))
 
 
-def _refusal(path: str | os.PathLike, attrs: dict[str, Any], key: str, note: str = "") -> FileExistsError:
+def _refusal(path: str | os.PathLike, attrs: dict[str, Any], key: str, note: str = "",
+             keep_roi: bool = False) -> FileExistsError:
     """The error for an output path that holds something other than this ingest."""
     what = (f"holds {'a complete' if attrs.get('complete') else 'an unfinished'} BTF store of another capture or "
             f"settings (ingest_hash {attrs.get('ingest_hash')!r}, this run {key!r})" if attrs else
             "exists and is not a BTF store")
+    if attrs and bool(attrs.get("keep_roi")) != keep_roi:
+        what += (" written with --keep-roi (regions of interest), this run without" if attrs.get("keep_roi") else
+                 " written without --keep-roi, this run keeps the regions of interest")
     return FileExistsError(f"{path} {what}; choose another --out or pass --overwrite{note}")
 
 
@@ -148,7 +162,8 @@ def check_capture(capture: str | os.PathLike | CaptureStore) -> CaptureStore:
 
 def check_ingest(capture_path: str | os.PathLike | CaptureStore, out_path: str | os.PathLike, *,
                  settings: IngestSettings = IngestSettings(), overwrite: bool = False,
-                 calibration: Calibration | None = None) -> tuple[CaptureStore, tuple[Path, bool]]:
+                 calibration: Calibration | None = None,
+                 keep_roi: bool = False) -> tuple[CaptureStore, tuple[Path, bool]]:
     """Everything ``btf ingest`` refuses, checked before any work (the CLI calls it before a cluster starts).
 
     Returns
@@ -161,11 +176,14 @@ def check_ingest(capture_path: str | os.PathLike | CaptureStore, out_path: str |
     Raises
     ------
     tasks.stores.CaptureStoreError, ValueError
-        A capture that breaks its schema or cannot be demultiplexed; a calibration that does not fit it.
+        A capture that breaks its schema or cannot be demultiplexed; a calibration that does not fit it;
+        ``keep_roi`` for a plan capture whose brackets differ in length (or that goes to a measurement store).
     FileExistsError
         ``out_path`` holds another output and not ``overwrite``.
     """
     capture = check_capture(capture_path)
+    if keep_roi:
+        _check_keep_roi(capture)
     if needs_measurement_store(capture):
         if calibration is not None:
             raise ValueError(
@@ -178,23 +196,41 @@ def check_ingest(capture_path: str | os.PathLike | CaptureStore, out_path: str |
         raise ValueError(f"{calibration.info.get('white_standard')}: the white standard has "
                          f"{len(calibration.led_gain)} LEDs, the capture {capture.path} {capture.n_leds}; "
                          "calibrate with a white standard captured on the same dome")
-    return capture, _ingest_target(Path(out_path), ingest_hash(capture, settings, calibration), overwrite)
+    return capture, _ingest_target(Path(out_path), ingest_hash(capture, settings, calibration, keep_roi), overwrite,
+                                   keep_roi)
+
+
+def _check_keep_roi(capture: CaptureStore) -> None:
+    """``--keep-roi`` needs every view's patterns merged from brackets of one length into single LEDs:
+    refused for a plan capture that goes to a measurement store or whose brackets differ in length."""
+    if needs_measurement_store(capture):
+        raise ValueError(
+            f"{capture.path}: --keep-roi keeps each view's single-LED regions of interest, but this plan capture "
+            f"({capture.meta.plan.get('strategy')!r} plan) is ingested to a measurement store, which holds no "
+            "single-LED images; ingest it without --keep-roi, or capture a full set (`btf simulate` without --plan)")
+    if capture.is_plan_capture and (capture.exposure_time == 0).any():
+        raise ValueError(
+            f"{capture.path}: --keep-roi is not supported for a plan capture whose brackets differ in length; "
+            "ingest it without --keep-roi, or capture with brackets of one length (`btf simulate` without --plan)")
 
 
 def create_ingest_store(path: str | os.PathLike, capture: CaptureStore, settings: IngestSettings, *,
-                        overwrite: bool = False, calibration: Calibration | None = None) -> BtfStore:
+                        overwrite: bool = False, calibration: Calibration | None = None,
+                        keep_roi: bool = False) -> BtfStore:
     """Create the BTF store of an ingest at ``path`` (:func:`tasks.stores.btf.create_btf_store`), or
     reopen an unfinished one of the same ingest.
 
     ``overwrite`` replaces a store of another ingest at ``path`` in place; :func:`ingest_capture`
-    passes it only for its staging store, never for a finished output.
+    passes it only for its staging store, never for a finished output. ``keep_roi`` adds the
+    regions of interest (``roi``, ``homography``; attributes ``keep_roi``, ``roi_shape``,
+    ``sample_size_m``).
     """
-    key = ingest_hash(capture, settings, calibration)
+    key = ingest_hash(capture, settings, calibration, keep_roi)
     attrs = store_attrs(path)
     if attrs is not None and attrs.get("ingest_hash") == key:
         return BtfStore(path, "r+")
     if attrs is not None and not overwrite:
-        raise _refusal(path, attrs, key)
+        raise _refusal(path, attrs, key, keep_roi=keep_roi)
     meta = capture.meta
     h, w = meta.texture_shape
     n_turn, n_cam, n_illum, n_leds = capture.n_turn, capture.n_cam, capture.n_illum, capture.n_leds
@@ -207,13 +243,18 @@ def create_ingest_store(path: str | os.PathLike, capture: CaptureStore, settings
                  for name in ("led_gain", "colour_matrix") if getattr(calibration, name) is not None}
         if calibration.led_gain is not None:
             units = CALIBRATED_UNITS
+    roi_attrs = {}
+    if keep_roi:
+        small["homography"] = np.asarray(capture.homography, dtype=np.float64)     # the whole frame is the region
+        roi_attrs = {"keep_roi": True, "roi_shape": [int(v) for v in capture.roi_shape],
+                     "sample_size_m": float(meta.sample_size_m)}
     return create_btf_store(path, {
         "units": units, "radiometric": None if calibration is None else calibration.info,
         "lv_order": LV_ORDER, "source": str(capture.path), "ingest_hash": key, "settings": asdict(settings),
-        "turntable_cameras_leds": [n_turn, n_cam, n_leds], "material": capture.material,
+        "turntable_cameras_leds": [n_turn, n_cam, n_leds], "material": capture.material, **roi_attrs,
     }, light_dir=light_dir, view_dir=view_dir, lv_index=lv_index, texture_shape=(h, w), rows_per_chunk=n_leds,
         band=band_rows(n_leds, h, w), written_shape=(n_turn, n_cam), small=small,
-        valid_fraction_shape=(n_turn, n_cam, n_illum))
+        valid_fraction_shape=(n_turn, n_cam, n_illum), roi_shape=capture.roi_shape if keep_roi else None)
 
 
 _workspace = threading.local()
@@ -231,24 +272,27 @@ def reused_buffer(name: str, shape: tuple[int, ...], dtype: Any) -> np.ndarray:
 
 
 def ingest_view(capture_path: str, meta: CaptureMetadata, out_path: str, settings: IngestSettings, t: int, c: int,
-                calibration: Calibration | None = None) -> tuple[int, int]:
+                calibration: Calibration | None = None, keep_roi: bool = False) -> tuple[int, int]:
     """Process one view of the capture and write its chunk of the BTF store.
 
     ``meta`` is the capture's metadata as the driver validated it (:meth:`CaptureStore.reopen`).
+    With ``keep_roi`` the whole frame is processed and its single-LED radiance kept as the view's
+    rows of ``roi``.
     """
     capture = CaptureStore.reopen(capture_path, meta)
     window = view_window(capture.homography[t, c], capture.roi_shape, tuple(meta.texture_shape),
-                         meta.sample_size_m, settings)
+                         meta.sample_size_m, settings, whole_frame=keep_roi)
     if capture.is_plan_capture and (capture.exposure_time[t, c] == 0).any():
         return _ingest_plan_view(capture, out_path, settings, t, c, calibration, window)
+    win_shape = (window[0].stop - window[0].start, window[1].stop - window[1].start)
     raw = capture.read_raw(t, c, window, out=reused_buffer(
-        "raw", (capture.n_illum, capture.n_exp, window[0].stop - window[0].start,
-                window[1].stop - window[1].start), capture.raw.dtype))
+        "raw", (capture.n_illum, capture.n_exp, *win_shape), capture.raw.dtype))
+    roi = reused_buffer("roi", (capture.n_leds, *win_shape, 3), np.float32) if keep_roi else None
     textures, valid = process_view(
         raw, capture.exposure_time[t, c], capture.illumination,
         **view_chain_arguments(capture, t, c, window, settings, calibration),
-        out=reused_buffer("rectified", (capture.n_illum, *meta.texture_shape, 3), np.float32))
-    _write_view(out_path, capture, t, c, textures, valid)
+        out=reused_buffer("rectified", (capture.n_illum, *meta.texture_shape, 3), np.float32), roi_out=roi)
+    _write_view(out_path, capture, t, c, textures, valid, roi)
     return t, c
 
 
@@ -268,12 +312,15 @@ def view_chain_arguments(capture: CaptureStore, t: int, c: int, window: tuple, s
 
 
 def _write_view(out_path: str, capture: CaptureStore, t: int, c: int, textures: np.ndarray,
-                valid: np.ndarray) -> None:
-    """A view's rows of ``btf`` (exactly one chunk of rows), its valid fractions, then its marker."""
+                valid: np.ndarray, roi: np.ndarray | None = None) -> None:
+    """A view's rows of ``btf`` (exactly one chunk of rows) and of ``roi`` when kept, its valid fractions,
+    then its marker."""
     group = BtfStore(out_path, "r+").group
     n_leds = capture.n_leds
     row = (t * capture.n_cam + c) * n_leds
     group["btf"][row:row + n_leds] = textures
+    if roi is not None:
+        write_chunk_aligned(group["roi"], slice(row, row + n_leds), roi)
     group["valid_fraction"][t, c] = valid
     group["written"][t, c] = 1                                 # marker after the data
 
@@ -299,7 +346,8 @@ def _ingest_plan_view(capture: CaptureStore, out_path: str, settings: IngestSett
 def ingest_capture(capture_path: str | os.PathLike | CaptureStore, out_path: str | os.PathLike, client: Any, *,
                    settings: IngestSettings = IngestSettings(), overwrite: bool = False,
                    calibration: Calibration | None = None,
-                   progress: Callable[[int, int], None] | None = None, commit: bool = True) -> dict[str, Any]:
+                   progress: Callable[[int, int], None] | None = None, commit: bool = True,
+                   keep_roi: bool = False) -> dict[str, Any]:
     """Ingest a capture store into a BTF store on a Dask cluster; resumes unfinished runs.
 
     The capture is opened and validated once, here (or by the caller, who passes the
@@ -308,19 +356,21 @@ def ingest_capture(capture_path: str | os.PathLike | CaptureStore, out_path: str
     replaced only after the new one is complete: the views go to :func:`staging_path` (``"staged": True`` in the result), which
     :func:`commit_staged` then renames over ``out_path``, here when ``commit`` or else by the caller
     once it has checked the staged store (``btf ingest`` checks its valid fractions first). A staging
-    store of this ingest is resumed, with or without ``overwrite``.
+    store of this ingest is resumed, with or without ``overwrite``. ``keep_roi`` also keeps each
+    view's regions of interest (``btf ingest --keep-roi``; part of the ingest hash only when true).
     """
     start = time.perf_counter()
     capture, (target, staged) = check_ingest(capture_path, out_path, settings=settings, overwrite=overwrite,
-                                             calibration=calibration)
+                                             calibration=calibration, keep_roi=keep_roi)
     if needs_measurement_store(capture):
         return ingest_measurement(capture, out_path, client, settings=settings, overwrite=overwrite,
                                   progress=progress, commit=commit)
-    store = create_ingest_store(target, capture, settings, overwrite=staged, calibration=calibration)
+    store = create_ingest_store(target, capture, settings, overwrite=staged, calibration=calibration,
+                                keep_roi=keep_roi)
     written = store.written
     pending = [] if store.complete else [(t, c) for t, c in np.ndindex(written.shape) if not written[t, c]]
-    run_all(client, ingest_view, [(capture.path, capture.meta, str(target), settings, t, c, calibration)
-                                  for t, c in pending], progress)
+    run_all(client, ingest_view, [(capture.path, capture.meta, str(target), settings, t, c, calibration,
+                                   keep_roi) for t, c in pending], progress)
     store.mark_complete("views")
     if staged and commit:
         commit_staged(out_path)

@@ -376,7 +376,7 @@ def chunk_files_exist(array: zarr.Array, chunks: Sequence[tuple[int, ...]]) -> l
 #: written chunks cannot be all fill value are listed (raw frames only with a black level > 0).
 WRITTEN_RULES: dict[str, list[tuple[str, str, tuple[int, ...]]]] = {
     "btf-capture": [("raw", "written", (0, 1, 2))],         # not dark frames: all-zero ones are accepted
-    "btf-texture": [("btf", "written", (0,))],              # ingest (view) and resample (target view)
+    "btf-texture": [("btf", "written", (0,)), ("roi", "written", (0,))],   # ingest (view), resample (target view)
     "btf-texture/reconstruct": [("btf", "written", (1,))],  # btf reconstruct: one marker per band
     "btf-measurement": [("measured", "written", (0,))],
 }

@@ -302,7 +302,8 @@ def abrdf_image(store: CaptureStore, out: Path, prefix: str) -> dict:
 
 #: The other reports a demo writes, relative to its folder: (file, what it shows).
 RELATED_REPORTS = (("model/report.html", "model database (build-db)"),
-                   ("acquisition/report.html", "acquisition evaluation"))
+                   ("acquisition/report.html", "acquisition evaluation"),
+                   ("superres/report.html", "super-resolution evaluation"))
 
 
 def _capture_sections(device: Device, store_paths: Sequence[str], stores: Sequence[CaptureStore],
@@ -501,6 +502,20 @@ def _acquisition_section(acquisition: dict[str, Any]) -> dict[str, Any]:
     }
 
 
+def _superres_section(superres: dict[str, Any]) -> dict[str, Any]:
+    """``btf demo``'s super-resolution step: the SR paper's Table 2 means, both protocols, and the crops."""
+    rows: list[Any] = [["protocol", "method", "mRMSE [BTF units]", "mPSNR [dB]", "mRE [%]"]]
+    for protocol, label in (("paper", "paper: 1/2 -> 1 vs measured"), ("exact", "exact: 1 -> 2 vs 2x truth")):
+        rows += [[label, m, v["mrmse"], v["mpsnr"], v["mre"]] for m, v in superres["means"][protocol].items()]
+    verdict = superres["verdicts"]
+    return {"title": "Super-resolution (btf evaluate superres at the demo's scale)",
+            "text": [f"Means over the test materials; the ESPCN (HDR normalisation: {superres['normalisation']}) "
+                     f"{'beats' if verdict['espcn_beats_dong_and_bicubic'] else 'does not beat'} bicubic and Dong et "
+                     "al. on every test material in both mPSNR and mRE. Per material, the regions' scores and "
+                     "scale invariance: superres/report.html."],
+            "table": rows, "figures": superres["figures"]}
+
+
 #: What each of the demo's stages does, for the report (keys of ``run["stages"]``).
 STAGE_NAMES = {
     "simulate": "simulate the materials (single LED)",
@@ -511,6 +526,7 @@ STAGE_NAMES = {
     "simulate multiplexed": "simulate the S-matrix captures",
     "ingest multiplexed": "ingest the S-matrix captures",
     "build-db": "build the model database",
+    "super-resolution": "super-resolution: train the ESPCN, score it against bicubic and Dong et al.",
     "evaluate acquisition": "evaluate acquisition",
     "report": "write this report",
 }
@@ -549,6 +565,8 @@ def simulation_report(out_dir: str | Path, device: Device, store_paths: Sequence
     sections += _ingest_sections(run, store_paths, stores, fig_dir)
     if run.get("model"):
         sections.append(_model_section(run["model"]))
+    if run.get("superres"):
+        sections.append(_superres_section(run["superres"]))
     if run.get("acquisition"):
         sections.append(_acquisition_section(run["acquisition"]))
     report = {"report": "btf-simulate", **run, "device": {

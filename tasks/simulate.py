@@ -81,6 +81,11 @@ class SimulationConfig:
         -- instead of ``illumination`` and the automatic brackets. It must be
         a plan for ``device`` (with ``n_turntable`` applied), and is validated
         against it. The ground truth is still the full single-light BTF.
+    camera_scale : int
+        Cameras with this many times the device's pixels along each axis
+        (:meth:`btfcore.dome.Device.with_overrides`, ``pixel_scale``): a larger
+        region of interest for the super-resolution evaluation (SR paper §4).
+        Left out of :meth:`to_json` (and so of :func:`config_hash`) at 1.
     """
 
     device: str = "tiny"
@@ -93,6 +98,7 @@ class SimulationConfig:
     n_turntable: int | None = None
     psf_sigma_px: float = 0.0
     plan: CapturePlan | None = None
+    camera_scale: int = 1
 
     def __post_init__(self) -> None:
         problems = []
@@ -112,6 +118,8 @@ class SimulationConfig:
             problems.append(f"psf_sigma_px must lie in [0, 10] raw pixels, got {self.psf_sigma_px}")
         if self.n_turntable is not None and self.n_turntable < 1:
             problems.append(f"n_turntable must be >= 1, got {self.n_turntable}")
+        if isinstance(self.camera_scale, bool) or not isinstance(self.camera_scale, int) or self.camera_scale < 1:
+            problems.append(f"camera_scale must be an integer >= 1, got {self.camera_scale!r}")
         if problems:
             raise ValueError("invalid simulation config: " + "; ".join(problems))
         if self.plan is not None:
@@ -142,10 +150,12 @@ class SimulationConfig:
         device = get_device(self.device, bayer_pattern=self.bayer_pattern, **overrides)
         if self.n_turntable is not None:
             device = device.with_overrides(turntable_angle_deg=device.turntable_angle_deg[: self.n_turntable])
-        return device
+        return device.with_overrides(pixel_scale=self.camera_scale) if self.camera_scale != 1 else device
 
     def to_json(self) -> dict[str, Any]:
         d = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "plan"}
+        if self.camera_scale == 1:
+            del d["camera_scale"]            # the configs (and hashes) of the stores written before it existed
         d["classes"] = list(self.classes)
         if self.plan is not None:                             # the whole plan is in each store's plan group
             from tasks.stores.measurement import plan_summary
@@ -319,6 +329,39 @@ def pattern_frames(device: Device, weights: np.ndarray, truth_2x: np.ndarray, tu
     frames = render_frame(texture, background, device.homography(turntable, camera),
                           device.roi_shape, device.sample_size_m)
     return frames, sample_mask(device, turntable, camera)
+
+
+def roi_truth(device: Device, truth_2x: np.ndarray, t: int, c: int, factor: int = 1) -> np.ndarray:
+    """The noise-free single-LED radiance of view ``(t, c)``'s region of interest, at ``factor`` times
+    the camera's pixels: the truth the super-resolved regions are compared with (SR paper §4).
+
+    Rendered like :func:`pattern_frames` (the holder's radiance around the sample,
+    :func:`btfcore.simulate.camera.render_frame`), but one frame per LED, without the LEDs' RGB
+    gains, the PSF or the sensor, by ``device.with_overrides(pixel_scale=factor)``.
+
+    Parameters
+    ----------
+    device : Device
+        The dome of the capture (:meth:`SimulationConfig.build_device`).
+    truth_2x : (n_leds, 2h, 2w, 3) ndarray
+        The view's stored 2x ground truth (``truth/btf_2x`` rows of view ``(t, c)``), BTF units.
+    t, c : int
+        Turntable position and camera.
+    factor : int
+        Pixels of the rendered region per camera pixel along each axis; exact only where the 2x
+        texture has at least one texel per rendered pixel (docs/simulator-physics.md).
+
+    Returns
+    -------
+    roi : (n_leds, rows * factor, cols * factor, 3) ndarray of float32
+        BTF units (a white Lambertian sample of albedo ``a`` reads ``a cos(theta_i) / pi``).
+    """
+    truth_2x = np.asarray(truth_2x, dtype=np.float32)
+    if truth_2x.ndim != 4 or truth_2x.shape[0] != device.n_leds or truth_2x.shape[-1] != 3:
+        raise ValueError(f"truth_2x must be ({device.n_leds}, 2h, 2w, 3), one view's LEDs, got {truth_2x.shape}")
+    camera = device.with_overrides(pixel_scale=factor)
+    background = np.repeat(holder_radiance(device.light_dirs(t))[:, None], 3, axis=1)       # (n_leds, 3)
+    return render_frame(truth_2x, background, camera.homography(t, c), camera.roi_shape, camera.sample_size_m)
 
 
 def camera_dark_map(device: Device, camera: int) -> np.ndarray:

@@ -15,6 +15,10 @@ The chain for one (turntable, camera) view, thesis §1.1.3:
    LED's RGB gain measured on a white standard
    (:func:`btfcore.capture.radiometric.apply_led_calibration`) and the camera's
    colour matrix (:func:`btfcore.capture.radiometric.apply_colour_matrix`).
+
+Steps 4-5 (:func:`to_single_leds`) can also be applied to the merged and demosaicked window itself:
+``process_view(..., roi_out=...)`` keeps the view's single-LED HDR radiance region before
+rectification, the input of super-resolution (SR paper §4; ``btf ingest --keep-roi``).
 """
 
 from __future__ import annotations
@@ -45,7 +49,7 @@ class IngestSettings:
 
 
 def view_window(homography: np.ndarray, frame_shape: tuple[int, int], texture_shape: tuple[int, int],
-                sample_size_m: float, settings: IngestSettings = IngestSettings()
+                sample_size_m: float, settings: IngestSettings = IngestSettings(), *, whole_frame: bool = False
                 ) -> tuple[slice, slice, sparse.csr_matrix]:
     """The part of a view's raw frames that its texture depends on, and its rectification operator.
 
@@ -55,17 +59,59 @@ def view_window(homography: np.ndarray, frame_shape: tuple[int, int], texture_sh
         Sample-plane metres -> raw pixel ``(col, row, 1)``.
     frame_shape : (2,) tuple of int
         ``(rows, cols)`` of the raw frames.
+    whole_frame : bool
+        The window is the whole frame (the region of interest a camera delivers, kept by
+        ``btf ingest --keep-roi``) and the operator the full one.
 
     Returns
     -------
     row_window, col_window : slice
         The pixels the rectification reads, plus the demosaicing filter's
-        radius, starting on the Bayer period (:func:`btfcore.capture.rectify.support_window`).
+        radius, starting on the Bayer period (:func:`btfcore.capture.rectify.support_window`);
+        the whole frame with ``whole_frame``.
     A : (h * w, n_rows * n_cols) scipy.sparse.csr_matrix
         The rectification operator on that window.
     """
     A_full = rectification_matrix(homography, frame_shape, texture_shape, sample_size_m, method=settings.rectify)
+    if whole_frame:
+        return slice(0, int(frame_shape[0])), slice(0, int(frame_shape[1])), sparse.csr_matrix(A_full)
     return support_window(A_full, frame_shape, margin=DEMOSAIC_RADIUS, align=2)
+
+
+def to_single_leds(images: np.ndarray, P: np.ndarray, *, led_gain: np.ndarray | None = None,
+                   colour_matrix: np.ndarray | None = None, out: np.ndarray | None = None) -> np.ndarray:
+    """Steps 4-5 of the chain on any per-pattern images of a view: demultiplexing, LED gains, colour matrix.
+
+    Parameters
+    ----------
+    images : (n_illum, rows, cols, 3) ndarray of float32
+        Linear radiance per illumination pattern (rectified textures, or the regions of interest).
+    P : (n_leds, n_illum) ndarray of float32
+        :func:`btfcore.capture.demultiplex.demultiplex_operator` of the patterns.
+    led_gain, colour_matrix : ndarray, optional
+        As in :func:`process_view`.
+    out : (n_leds, rows, cols, 3) ndarray of float32, optional
+        Where the demultiplexed images go (``images`` itself for a single-LED capture in LED order).
+
+    Returns
+    -------
+    (n_leds, rows, cols, 3) ndarray of float32
+        ``out`` when given; else ``images`` itself (single LEDs without a colour matrix) or a new array.
+    """
+    n_illum, n_leds = images.shape[0], P.shape[0]
+    if _in_led_order(P):
+        leds = images                                               # single-LED capture in LED order
+    else:
+        flat = None if out is None else out.reshape(n_leds, -1)     # a view: the product lands in out
+        leds = np.matmul(P, images.reshape(n_illum, -1), out=flat).reshape(n_leds, *images.shape[1:])
+    if led_gain is not None:
+        apply_led_calibration(leds, led_gain, out=leds)
+    if colour_matrix is not None:
+        leds = apply_colour_matrix(leds, colour_matrix)
+    if out is not None and not np.shares_memory(leds, out):
+        out[...] = leds
+        leds = out
+    return leds
 
 
 def process_view(frames: np.ndarray, exposure_time: np.ndarray, patterns: np.ndarray, *,
@@ -75,7 +121,7 @@ def process_view(frames: np.ndarray, exposure_time: np.ndarray, patterns: np.nda
                  gain_e_per_dn: float | None = None, read_noise_e: float | None = None,
                  led_gain: np.ndarray | None = None, colour_matrix: np.ndarray | None = None,
                  window: tuple[slice, slice, sparse.csr_matrix] | None = None,
-                 out: np.ndarray | None = None,
+                 out: np.ndarray | None = None, roi_out: np.ndarray | None = None,
                  settings: IngestSettings = IngestSettings()) -> tuple[np.ndarray, np.ndarray]:
     """Raw brackets of one view to demultiplexed, rectified linear RGB textures.
 
@@ -110,6 +156,11 @@ def process_view(frames: np.ndarray, exposure_time: np.ndarray, patterns: np.nda
         Buffer for the rectified textures, reused across views by the caller
         (first-touch of fresh memory is slow, docs/architecture.md,
         "Pitfalls"); a single-LED capture's result is returned in it.
+    roi_out : (n_leds, win_rows, win_cols, 3) ndarray of float32, optional
+        Filled with the view's HDR radiance region before rectification (SR paper §4): the merged
+        and demosaicked window, demultiplexed to single LEDs and radiometrically corrected like the
+        textures, so that the window's operator applied to it gives the textures (to float32
+        rounding, when the colour matrix has no offset column).
 
     Returns
     -------
@@ -139,6 +190,8 @@ def process_view(frames: np.ndarray, exposure_time: np.ndarray, patterns: np.nda
     if rectified.shape != (n_illum, *texture_shape, 3) or rectified.dtype != np.float32:
         raise ValueError(f"out must be a float32 array of shape {(n_illum, *texture_shape, 3)}, got "
                          f"{rectified.dtype} {rectified.shape}")
+    P = demultiplex_operator(patterns).astype(np.float32)           # (n_leds, n_illum)
+    roi = _roi_buffer(roi_out, P, win_shape)                       # (n_illum, *win_shape, 3) or None
     valid_fraction = np.empty(n_illum)
     dark_line = None
     if dark_frames is not None and dark_exposure_time is not None:
@@ -166,22 +219,36 @@ def process_view(frames: np.ndarray, exposure_time: np.ndarray, patterns: np.nda
             valid_fraction[i] = float(valid.mean())
         if not full_rgb:
             demosaic(hdr[:n], bayer_pattern, method=settings.demosaic, out=rgb[:n])
+        if roi is not None:
+            roi[first:first + n] = rgb[:n]
         # (n, pixels) -> (pixels, n) of RGB triplets and back: OpenCV's blocked transposes (3x numpy's
         # strided copies; demosaicking into a strided view was slower still), so that one sparse
         # product rectifies the n images
         stack = cv2.transpose(rgb[:n].reshape(n, -1, 3)).reshape(*win_shape, 3 * n)
         out = apply_rectification(A, stack, texture_shape)                                # (h, w, 3n)
         rectified[first:first + n].reshape(n, -1, 3)[...] = cv2.transpose(out.reshape(-1, n, 3))
-    P = demultiplex_operator(patterns).astype(np.float32)           # (n_leds, n_illum)
-    if P.shape[0] == n_illum and np.array_equal(P, np.eye(n_illum, dtype=np.float32)):
-        textures = rectified                                        # single-LED capture in LED order
-    else:
-        textures = (P @ rectified.reshape(n_illum, -1)).reshape(P.shape[0], *texture_shape, 3)
-    if led_gain is not None:
-        apply_led_calibration(textures, led_gain, out=textures)
-    if colour_matrix is not None:
-        textures = apply_colour_matrix(textures, colour_matrix)
+    textures = to_single_leds(rectified, P, led_gain=led_gain, colour_matrix=colour_matrix)
+    if roi is not None:
+        to_single_leds(roi, P, led_gain=led_gain, colour_matrix=colour_matrix, out=roi_out)
     return textures, valid_fraction
+
+
+def _roi_buffer(roi_out: np.ndarray | None, P: np.ndarray, win_shape: tuple[int, int]) -> np.ndarray | None:
+    """Where :func:`process_view` collects the demosaicked window of every pattern: ``roi_out`` itself
+    for a single-LED capture in LED order, else a new ``(n_illum, *win_shape, 3)`` array (demultiplexed
+    into ``roi_out`` at the end)."""
+    if roi_out is None:
+        return None
+    n_leds, n_illum = P.shape
+    if roi_out.shape != (n_leds, *win_shape, 3) or roi_out.dtype != np.float32:
+        raise ValueError(f"roi_out must be a float32 array of shape {(n_leds, *win_shape, 3)} (the LEDs x the "
+                         f"view's window), got {roi_out.dtype} {roi_out.shape}")
+    return roi_out if _in_led_order(P) else np.empty((n_illum, *win_shape, 3), dtype=np.float32)
+
+
+def _in_led_order(P: np.ndarray) -> bool:
+    """Whether the demultiplexing operator ``P`` is the identity (single LEDs, in LED order)."""
+    return P.shape[0] == P.shape[1] and np.array_equal(P, np.eye(P.shape[0], dtype=P.dtype))
 
 
 def lv_directions(led_position: np.ndarray, camera_R: np.ndarray, camera_t: np.ndarray,

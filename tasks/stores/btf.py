@@ -8,7 +8,9 @@ direction of each row; ``lv_index``; and ``written`` resume markers, set after t
 Three stages write one, each with its own content key and rows:
 
 - ``btf ingest`` (:mod:`tasks.ingest`): rows ``(turntable, camera, light)``, one chunk per view and
-  band of texture rows (:func:`band_rows`), ``valid_fraction``, key ``ingest_hash``;
+  band of texture rows (:func:`band_rows`), ``valid_fraction``, key ``ingest_hash``; with
+  ``--keep-roi`` also each view's HDR radiance region of interest before rectification, ``roi``
+  ``(n_lv, rows, cols, 3)``, and the views' ``homography`` (:data:`ROI_ARRAYS`);
 - ``btf resample`` (:mod:`tasks.resample`): rows ``(view, light)``, key ``resample_hash``;
 - ``btf reconstruct`` (:mod:`tasks.reconstruct`): rows as ingested, one marker per band of texture
   rows, key ``reconstruct_hash``.
@@ -35,6 +37,7 @@ from tasks.stores.common import ROOT_ATTRS, WHOLE_STORE, Problem, is_url, store_
 __all__ = [
     "ARRAYS",
     "CHUNK_BYTES",
+    "ROI_ARRAYS",
     "SCHEMA_NAME",
     "SCHEMA_VERSION",
     "BtfStore",
@@ -56,11 +59,11 @@ UNCORRECTED_UNITS = "DN/s per unit LED drive, before radiometric correction"
 #: Bytes of one chunk of the ``btf`` array that :func:`band_rows` aims for.
 CHUNK_BYTES = 4 << 20
 #: The commands that write a BTF store, for messages.
-PRODUCERS = "`btf ingest`, `btf resample` or `btf reconstruct`"
+PRODUCERS = "`btf ingest`, `btf resample`, `btf reconstruct` or `btf superres apply`"
 #: Attributes every BTF store has (besides one content key of :data:`CONTENT_KEYS`).
 REQUIRED_ATTRS = ("schema", "schema_version", "units", "lv_order", "texture_shape", "complete")
 #: What identifies a store's content, by the stage that wrote it.
-CONTENT_KEYS = ("ingest_hash", "resample_hash", "reconstruct_hash")
+CONTENT_KEYS = ("ingest_hash", "resample_hash", "reconstruct_hash", "superres_hash")
 #: Unit length tolerance of the direction arrays.
 UNIT_TOL = 1e-6
 
@@ -74,6 +77,11 @@ ARRAYS: dict[str, tuple[str, str, str]] = {
 }
 #: The arrays every reader uses.
 READ_ARRAYS = ("btf", "light_dir", "view_dir")
+#: The arrays of a store with regions of interest (``btf ingest --keep-roi``): name -> (dtype, shape, meaning).
+ROI_ARRAYS: dict[str, tuple[str, str, str]] = {
+    "roi": ("float32", "(n_lv, rows, cols, 3)", "HDR radiance region of interest of each row, before rectification"),
+    "homography": ("float64", "(n_turn, n_cam, 3, 3)", "sample-plane metres -> roi pixel (col, row, 1) per view"),
+}
 
 
 class BtfStoreError(ValueError):
@@ -110,7 +118,8 @@ def band_rows(n_leds: int, h: int, w: int) -> int:
 def create_btf_store(path: str | os.PathLike, attrs: Mapping[str, Any], *, light_dir: np.ndarray,
                      view_dir: np.ndarray, lv_index: np.ndarray, texture_shape: Sequence[int], rows_per_chunk: int,
                      band: int, written_shape: tuple[int, ...], small: Mapping[str, np.ndarray] | None = None,
-                     valid_fraction_shape: tuple[int, int, int] | None = None) -> BtfStore:
+                     valid_fraction_shape: tuple[int, int, int] | None = None,
+                     roi_shape: Sequence[int] | None = None) -> BtfStore:
     """Create an empty BTF store at ``path`` (replacing whatever is there), ``complete`` false.
 
     Parameters
@@ -135,6 +144,10 @@ def create_btf_store(path: str | os.PathLike, attrs: Mapping[str, Any], *, light
         Further arrays stored whole (``led_gain``, ``target_light_dirs``, ``outside_hull`` ...).
     valid_fraction_shape : (n_turn, n_cam, n_illum), optional
         An ingest's ``valid_fraction``, one chunk per view.
+    roi_shape : (rows, cols), optional
+        An ingest's regions of interest (``btf ingest --keep-roi``): ``roi`` ``(n_lv, rows, cols, 3)``
+        float32, chunks of ``rows_per_chunk`` rows x a band of about :data:`CHUNK_BYTES` of region
+        rows (:func:`band_rows`); its ``homography`` comes in ``small``.
 
     Returns
     -------
@@ -158,6 +171,12 @@ def create_btf_store(path: str | os.PathLike, attrs: Mapping[str, Any], *, light
     for name, data in whole.items():
         data = np.asarray(data)
         create_array(group, name, shape=data.shape, dtype=data.dtype, chunks=data.shape, compressors=None)[...] = data
+    if roi_shape is not None:
+        rows, cols = (int(v) for v in roi_shape)
+        create_array(group, "roi", shape=(n_lv, rows, cols, 3),
+                     chunks=(int(rows_per_chunk), band_rows(int(rows_per_chunk), rows, cols), cols, 3),
+                     dtype="float32", fill_value=0.0, compressors=None,
+                     dimension_names=["lv", "roi_row", "roi_col", "channel"])
     if valid_fraction_shape is not None:
         create_array(group, "valid_fraction", shape=valid_fraction_shape, chunks=(1, 1, valid_fraction_shape[2]),
                      dtype="float64", fill_value=0.0, compressors=None)
@@ -317,6 +336,18 @@ class BtfStore:
         return self.group["lv_index"][...]
 
     @property
+    def roi(self) -> zarr.Array | None:
+        """``(n_lv, rows, cols, 3)`` float32 HDR radiance regions of interest before rectification (read
+        lazily; ``btf ingest --keep-roi``), or ``None`` when the store has none."""
+        return self.group["roi"] if "roi" in self.group else None
+
+    @property
+    def homography(self) -> np.ndarray | None:
+        """``(n_turn, n_cam, 3, 3)`` float64: sample-plane metres -> :attr:`roi` pixel ``(col, row, 1)``
+        of each view, or ``None`` when the store has no regions of interest."""
+        return np.asarray(self.group["homography"][...], dtype=np.float64) if "homography" in self.group else None
+
+    @property
     def written(self) -> np.ndarray:
         """The resume markers (read fresh)."""
         return self.group["written"][...]
@@ -358,9 +389,10 @@ class BtfStore:
 
     @property
     def content_key(self) -> str | None:
-        """What identifies the content: its ingest hash (or, resampled, its resample hash)."""
+        """What identifies the content: its ingest hash (or, resampled, its resample hash; super-resolved,
+        its superres hash)."""
         attrs = self.group.attrs
-        return attrs.get("ingest_hash") or attrs.get("resample_hash")
+        return attrs.get("ingest_hash") or attrs.get("resample_hash") or attrs.get("superres_hash")
 
 
 # --------------------------------------------------------------------------- validating
@@ -398,6 +430,7 @@ def validate_btf_store(path: str | os.PathLike, *, require_complete: bool = True
     problems = _attr_problems(attrs)
     data = _small_arrays(group, problems)
     _shape_problems(group, attrs, data, problems)
+    _roi_problems(group, attrs, problems)
     _marker_problems(attrs, data.get("written"), problems, require_complete=require_complete)
     return problems
 
@@ -485,6 +518,45 @@ def _shape_problems(group: zarr.Group, attrs: Mapping[str, Any], data: Mapping[s
         if index.dtype.kind not in "iu" or index.shape != (n_lv, len(order)):
             problems.append(Problem("lv_index", None, f"integers of shape ({n_lv}, {len(order)}) (lv_order {order})",
                                     f"{index.dtype} {index.shape}", rewrite))
+
+
+def _roi_problems(group: zarr.Group, attrs: Mapping[str, Any], problems: list[Problem]) -> None:
+    """``roi`` and ``homography`` (``btf ingest --keep-roi``), when present or promised by ``keep_roi``:
+    both there, ``roi`` ``(n_lv, rows, cols, 3)`` float32 with ``roi_shape`` ``[rows, cols]``,
+    ``homography`` ``(n_turn, n_cam, 3, 3)`` of ``turntable_cameras_leds`` and finite."""
+    rewrite = "write the store again with `btf ingest --keep-roi` into a new --out"
+    present = {name: group.get(name) for name in ROI_ARRAYS}
+    if not attrs.get("keep_roi") and all(node is None for node in present.values()):
+        return
+    for name, node in present.items():
+        if not isinstance(node, zarr.Array):
+            problems.append(Problem(name, None, f"array {name!r} {ROI_ARRAYS[name][1]} (a store with regions of "
+                                                "interest)", "nothing" if node is None else "a group", rewrite))
+    roi, homography, btf = present["roi"], present["homography"], group.get("btf")
+    roi_shape = attrs.get("roi_shape")
+    if isinstance(roi, zarr.Array):
+        n_lv = btf.shape[0] if isinstance(btf, zarr.Array) else roi.shape[0]
+        rows_cols = list(roi_shape) if isinstance(roi_shape, list) and len(roi_shape) == 2 else ["rows", "cols"]
+        if str(roi.dtype) != "float32" or roi.ndim != 4 or roi.shape[0] != n_lv or roi.shape[3] != 3 or \
+                list(roi.shape[1:3]) != rows_cols:
+            problems.append(Problem("roi", None, f"float32 of shape ({n_lv}, {rows_cols[0]}, {rows_cols[1]}, 3) "
+                                                 "(btf's rows, attribute roi_shape)", f"{roi.dtype} {roi.shape}",
+                                    rewrite))
+    if isinstance(homography, zarr.Array):
+        tcl = attrs.get("turntable_cameras_leds")
+        want = (tuple(tcl[:2]) if isinstance(tcl, list) and len(tcl) == 3 else ("n_turn", "n_cam")) + (3, 3)
+        if homography.shape != want or str(homography.dtype) != "float64":
+            problems.append(Problem("homography", None, f"float64 of shape {want} (turntable_cameras_leds)",
+                                    f"{homography.dtype} {homography.shape}", rewrite))
+        else:
+            try:
+                finite = bool(np.isfinite(homography[...]).all())
+            except CorruptChunkError as e:
+                problems.append(Problem("homography", f"chunk {e.chunk}", "a chunk that reads back as written",
+                                        e.problem, e.hint))
+                finite = True
+            if not finite:
+                problems.append(Problem("homography", None, "finite values", "NaN or infinity", rewrite))
 
 
 def _marker_problems(attrs: Mapping[str, Any], written: np.ndarray | None, problems: list[Problem], *,

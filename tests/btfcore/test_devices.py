@@ -276,3 +276,50 @@ def test_invalid_device_is_refused():
         d.with_overrides(camera_R=d.camera_R * 2)
     with pytest.raises(ValueError, match="NaN"):
         d.with_overrides(camera_t=d.camera_t * np.nan)
+
+
+@pytest.mark.parametrize("f", [2, 3])
+def test_pixel_scale_maps_every_pixel_to_its_block(f):
+    """A camera with f times the pixels: a 1x pixel centre x maps to the 2x pixel centre f x + (f - 1) / 2."""
+    d = get_device("tiny")
+    big = d.with_overrides(pixel_scale=f)
+    assert big.roi_shape == (f * d.roi_shape[0], f * d.roi_shape[1])
+    assert big.texture_shape == d.texture_shape and big.sensor.to_json() == d.sensor.to_json()
+    np.testing.assert_array_equal(big.camera_R, d.camera_R)
+    corners = np.c_[_corners(d.sample_size_m), np.ones(4)]
+    for t, c in ((0, 0), (1, 3), (2, 2)):
+        small_px = corners @ d.homography(t, c).T
+        big_px = corners @ big.homography(t, c).T
+        np.testing.assert_allclose(big_px[:, :2] / big_px[:, 2:], f * small_px[:, :2] / small_px[:, 2:] + (f - 1) / 2,
+                                   atol=1e-9)
+        np.testing.assert_allclose(big.homographies()[t, c], big.homography(t, c))
+    # the sample centre stays at the ROI centre; other overrides are applied first
+    np.testing.assert_allclose(big.camera_K[:, :2, 2], np.broadcast_to((np.array(big.roi_shape[::-1]) - 1) / 2,
+                                                                       (big.n_cam, 2)))
+    both = d.with_overrides(pixel_scale=f, roi_shape=(80, 76))
+    assert both.roi_shape == (80 * f, 76 * f)
+    np.testing.assert_allclose(both.camera_K[:, :2, 2], np.broadcast_to((np.array(both.roi_shape[::-1]) - 1) / 2,
+                                                                        (both.n_cam, 2)))
+    assert d.with_overrides(pixel_scale=1).roi_shape == d.roi_shape
+    for bad in (0, 1.5, True):
+        with pytest.raises(ValueError, match="pixel_scale"):
+            d.with_overrides(pixel_scale=bad)
+
+
+def test_twice_the_pixels_area_down_sampled_is_the_camera():
+    """A 2x camera's frame of a smooth scene, each 2 x 2 block averaged, is the 1x camera's frame."""
+    from btfcore.simulate.camera import render_frame
+
+    d = get_device("tiny")
+    big = d.with_overrides(pixel_scale=2)
+    v, u = np.mgrid[0:64, 0:64] / 63.0
+    texture = np.stack([0.2 + 0.5 * u, 0.3 + 0.4 * np.sin(2 * v) * u, 0.6 - 0.3 * v], axis=-1)[None]
+    texture = texture.astype(np.float32)
+    background = np.full((1, 3), 0.25, dtype=np.float32)          # the holder: a smooth scene everywhere
+    for t, c in ((0, 0), (1, 2), (2, 3)):
+        small = render_frame(texture, background, d.homography(t, c), d.roi_shape, d.sample_size_m, supersample=6)
+        large = render_frame(texture, background, big.homography(t, c), big.roi_shape, big.sample_size_m)
+        blocks = large.reshape(1, d.roi_shape[0], 2, d.roi_shape[1], 2, 3).mean(axis=(2, 4))
+        # 6 x 6 sub-pixels per 1x pixel either way, at the same points of the sample plane when every
+        # 1x pixel is exactly its 2 x 2 block (measured: 1.2e-7, float32 rounding)
+        assert np.abs(blocks - small).max() < 1e-5, np.abs(blocks - small).max()
