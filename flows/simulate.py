@@ -156,7 +156,8 @@ def demo_flow(out_dir: str, scheduler_address: str, seed: int = 0, n_materials: 
         stages["build-db"] = _said("build-db", {"seconds": round(time.perf_counter() - start_model, 3),
                                                 "reused": reused}, progress)
         run["model"] = {"report_html": str(out / "model" / "report.html"), **model}
-    if n_materials >= 2 * n_classes:         # super-resolution on the demo's own leathers and cloths
+    classes = {Path(p).stem.split("-", 1)[-1] for p in stage["stores"]}
+    if {"leather", "cloth"} <= classes:      # super-resolution on the demo's first leather and cloth
         run["superres"] = _demo_superres(out, stage["stores"], scheduler_address, seed, progress)
         run["stages"]["super-resolution"] = {"seconds": run["superres"].pop("seconds"),
                                              "reused": run["superres"].pop("reused")}
@@ -179,21 +180,25 @@ def demo_flow(out_dir: str, scheduler_address: str, seed: int = 0, n_materials: 
 
 
 def _demo_superres(out: Path, stores: list[str], scheduler_address: str, seed: int, progress: bool) -> dict[str, Any]:
-    """``btf evaluate superres`` at the demo's scale on its own captures: one leather and one cloth train the
-    networks (a quarter of their rows, a few epochs), the other two are scored (docs/super-resolution.md)."""
+    """``btf evaluate superres`` at the demo's scale on its own first leather and cloth, each training its own
+    networks (a quarter of its rows, a few epochs; docs/super-resolution.md)."""
     from flows.superres import evaluate_superres_flow
     from tasks.evaluate_superres import DEMO_SUPERRES
 
     start = time.perf_counter()
-    captures = [p for p in stores if Path(p).stem.split("-", 1)[-1] in ("leather", "cloth")]
+    first = {}
+    for p in stores:                                     # the first leather and the first cloth
+        first.setdefault(Path(p).stem.split("-", 1)[-1], p)
+    captures = [first[c] for c in ("leather", "cloth") if c in first]
     summary = evaluate_superres_flow(str(out / "superres"), scheduler_address,
                                      DEMO_SUPERRES.with_seed(seed), progress, captures=captures)
-    reused = sum(bool(t.get("reused")) for t in summary["training"].values())
+    trained = [t for rec in summary["materials"] for t in rec["training"].values()]
+    reused = sum(bool(t.get("reused")) for t in trained)
     return {"report_html": str(out / "superres" / "report.html"), "means": summary["means"],
             "verdicts": summary["verdicts"], "normalisation": summary["normalisation"],
             "figures": [dict(f, file=f"superres/{f['file']}") for rec in summary["materials"] for f in rec["figures"]],
             "seconds": round(time.perf_counter() - start, 3),
-            "reused": {"models": [reused, len(summary["training"])]}}
+            "reused": {"models": [reused, len(trained)]}}
 
 
 def _said(name: str, figures: dict[str, Any], progress: bool) -> dict[str, Any]:

@@ -22,7 +22,8 @@ radiance region of interest by 2 before rectification; the regions come from
 
   btf superres train BTF [BTF ...] --out MODEL.pt   learn from the stores' own regions,
         down-sampled once (--protocol exact: 1/2 -> 1) or twice (paper: 1/4 -> 1/2),
-        about 5 % of each store's rows (--fraction); Adam at 1e-2, MSE, early stopping.
+        118 rows of each store, the paper's images per material (or --fraction);
+        Adam at 1e-2, MSE, early stopping.
   btf superres apply BTF --model MODEL.pt --out BTF2X   up-sample every region (one task
         per view; CUDA when present) and rectify it at twice the texture size into a
         btf-texture store; resumable; --method bicubic needs no model.
@@ -45,8 +46,9 @@ def add_superres_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--protocol", default="exact", choices=("exact", "paper"),
                    help="train: exact learns 1/2 -> 1 to apply 1 -> 2; paper learns 1/4 -> 1/2 (SR paper §5.1) "
                         "[default: exact]")
-    p.add_argument("--fraction", type=float, default=0.05, metavar="F",
-                   help="train: share of each store's rows whose regions give patches [default: 0.05, the paper's]")
+    p.add_argument("--fraction", type=float, default=None, metavar="F",
+                   help="train: share of each store's rows whose regions give patches [default: 118 rows, the SR "
+                        "paper's images per material]")
     p.add_argument("--normalisation", default=None, choices=("log", "scale"),
                    help="train: HDR input normalisation [default: the measured better one, docs/super-resolution.md]")
     p.add_argument("--epochs", type=_positive_int, default=None, metavar="N", help="train: most epochs")
@@ -83,7 +85,7 @@ def run_superres_train(args: argparse.Namespace) -> int:
 
     if args.model or args.method != "espcn" or args.overwrite:
         raise ValueError("--model, --method and --overwrite belong to `btf superres apply`; drop them")
-    if not 0 < args.fraction <= 1:
+    if args.fraction is not None and not 0 < args.fraction <= 1:
         raise ValueError(f"--fraction {args.fraction}: give a share in (0, 1]")
     config = EspcnConfig() if args.normalisation is None else EspcnConfig(normalisation=args.normalisation)
     settings = TrainingSettings(seed=args.seed, **({"max_epochs": args.epochs} if args.epochs else {}))
@@ -98,12 +100,14 @@ def run_superres_train(args: argparse.Namespace) -> int:
 def add_evaluate_superres_arguments(p: argparse.ArgumentParser) -> None:
     """The options ``btf evaluate superres`` adds to ``btf evaluate``."""
     p.add_argument("--sr-materials-per-class", type=_positive_int, default=5, metavar="N",
-                   help="superres: leathers and cloths each (2 train, 1 validation, the rest test) [default: 5]")
+                   help="superres: leathers and cloths each: from 4, 2 train one network for the others and 1 "
+                        "validates (chooses the normalisation and Dong's alpha), the rest are test materials; 2-3: 1 "
+                        "validates; 1: it is the test material [default: 5]")
     p.add_argument("--sr-texture", type=_positive_int, default=96, metavar="PX",
                    help="superres: texture side (the 2x truth is twice it) [default: 96]")
     p.add_argument("--sr-camera-scale", type=_positive_int, default=2, metavar="F",
                    help="superres: cameras with F times the tiny dome's pixels (regions 72 F px) [default: 2]")
-    p.add_argument("--sr-epochs", type=_positive_int, default=40, metavar="N", help="superres: most epochs [default: 40]")
+    p.add_argument("--sr-epochs", type=_positive_int, default=20, metavar="N", help="superres: most epochs [default: 20]")
 
 
 def superres_evaluation_config(args: argparse.Namespace) -> Any:
@@ -112,8 +116,11 @@ def superres_evaluation_config(args: argparse.Namespace) -> Any:
 
     if not args.out:
         raise ValueError("give --out DIR")
-    return SuperresEvaluationConfig(materials_per_class=args.sr_materials_per_class, texture_size=args.sr_texture,
-                                    camera_scale=args.sr_camera_scale, max_epochs=args.sr_epochs, seed=args.eval_seed)
+    m = args.sr_materials_per_class
+    n_train, n_validation = (2, 1) if m >= 4 else (0, 1) if m >= 2 else (0, 0)
+    return SuperresEvaluationConfig(materials_per_class=m, n_train=n_train, n_validation=n_validation,
+                                    texture_size=args.sr_texture, camera_scale=args.sr_camera_scale,
+                                    max_epochs=args.sr_epochs, seed=args.eval_seed)
 
 
 def evaluate_superres_flow(args: argparse.Namespace, address: str, prepared: dict) -> dict[str, Any]:

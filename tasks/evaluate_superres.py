@@ -54,7 +54,10 @@ class SuperresEvaluationConfig:
     """The scale of ``btf evaluate superres`` (defaults: see docs/super-resolution.md, "Scale").
 
     ``materials_per_class`` leathers and as many cloths on ``device`` with ``camera_scale`` times its
-    pixels and ``texture_size`` texels; per class the first ``n_train`` train the networks, the next
+    pixels and ``texture_size`` texels. Every validation and test material trains its own networks on
+    118 of its rows (the SR paper's images per material) or ``fraction`` of them (the capture's own
+    down-sampled regions); per class the first ``n_train``
+    materials also train one network for the others (the SR paper's split, scored beside it), the next
     ``n_validation`` choose the normalisation and Dong's alpha (without any: the default normalisation
     and alpha), the rest are the test materials.
     """
@@ -66,21 +69,20 @@ class SuperresEvaluationConfig:
     n_train: int = 2
     n_validation: int = 1
     seed: int = 0
-    fraction: float = 0.05
-    max_epochs: int = 40
+    fraction: float | None = None
+    max_epochs: int = 20
     dong_rank: int = 300
     dong_alphas: tuple[float, ...] = (1e-3, 3e-3, 1e-2, 3e-2, 1e-1)
 
     def __post_init__(self) -> None:
-        if self.materials_per_class < self.n_train + self.n_validation + 1 or self.n_train < 1 or \
-                self.n_validation < 0:
+        if self.materials_per_class < self.n_train + self.n_validation + 1 or min(self.n_train, self.n_validation) < 0:
             raise ValueError(f"materials_per_class {self.materials_per_class} must leave at least one test material "
-                             f"per class after {self.n_train} training (>= 1) and {self.n_validation} validation "
+                             f"per class after {self.n_train} training and {self.n_validation} validation "
                              "material(s)")
         if self.camera_scale < 1 or self.texture_size < 8 or self.texture_size % 2:
             raise ValueError("camera_scale must be >= 1 and texture_size an even number >= 8, got "
                              f"{self.camera_scale} and {self.texture_size}")
-        if not 0 < self.fraction <= 1:
+        if self.fraction is not None and not 0 < self.fraction <= 1:
             raise ValueError(f"fraction must lie in (0, 1], got {self.fraction}")
 
     def with_seed(self, seed: int) -> "SuperresEvaluationConfig":
@@ -107,12 +109,16 @@ class SuperresEvaluationConfig:
     def to_json(self) -> dict[str, Any]:
         return {**asdict(self), "dong_alphas": list(self.dong_alphas)}
 
+    def training(self) -> dict[str, Any]:
+        """What each material's own networks are trained with (:func:`own_models`)."""
+        return {"fraction": self.fraction, "seed": self.seed, "max_epochs": self.max_epochs,
+                "compare_normalisations": self.n_validation > 0}
+
 
 #: ``btf demo``'s super-resolution step: the tiny dome as simulated (72 x 72 regions, 32 x 32 texels), one
-#: leather and one cloth for training (a quarter of their rows: 5 % gives too few 17 x 17 patches at this
-#: size), the other two scored, a few epochs.
-DEMO_SUPERRES = SuperresEvaluationConfig(camera_scale=1, texture_size=32, materials_per_class=2, n_train=1,
-                                         n_validation=0, fraction=0.25, max_epochs=6)
+#: leather and one cloth, each training its own networks (the default normalisation only) on 118 of its 192 rows for 4 epochs.
+DEMO_SUPERRES = SuperresEvaluationConfig(camera_scale=1, texture_size=32, materials_per_class=1, n_train=0,
+                                         n_validation=0, max_epochs=4)
 
 
 def scores(reference: np.ndarray, estimate: np.ndarray) -> dict[str, float]:
@@ -172,30 +178,58 @@ def _torch_threads() -> None:
     torch.set_num_threads(1)                        # one per Dask worker thread (docs/architecture.md, "Pitfalls")
 
 
-def validation_material(btf_path: str, paper_models: dict[str, str], alphas: list[float],
-                        dong_rank: int) -> dict[str, Any]:
-    """Scores that choose the normalisation (paper protocol, per network) and Dong's alpha on one material."""
+def own_models(btf_path: str, models_dir: str, normalisations: tuple[str, ...], protocols: tuple[str, ...],
+               training: dict[str, Any]) -> dict[str, Any]:
+    """Networks trained on the material's own regions (``training``: ``fraction``, ``seed``, ``max_epochs``),
+    one per protocol and normalisation, kept as ``MODELS_DIR/<material>-<protocol>-<normalisation>.pt``
+    (:func:`tasks.superres.train_model` reuses a file of the same training); ``{key: (model, summary)}``
+    keyed ``"<protocol>_<normalisation>"``."""
+    from btfcore.superres.espcn import EspcnConfig
+    from btfcore.superres.training import TrainingSettings
+    from tasks.superres import train_model
+
+    settings = TrainingSettings(max_epochs=training["max_epochs"], seed=training["seed"])
+    out = {}
+    for protocol in protocols:
+        for norm in normalisations:
+            path = Path(models_dir) / f"{Path(btf_path).stem}-{protocol}-{norm}.pt"
+            summary = train_model([btf_path], path, protocol=protocol, fraction=training["fraction"],
+                                  config=EspcnConfig(normalisation=norm), settings=settings)
+            brief = {k: summary[k] for k in ("protocol", "patches", "best_epoch", "samples_per_second", "seconds",
+                                             "reused")}
+            out[f"{protocol}_{norm}"] = (load_model(path).model, brief)
+    return out
+
+
+def validation_material(btf_path: str, alphas: list[float], dong_rank: int, models_dir: str,
+                        training: dict[str, Any]) -> dict[str, Any]:
+    """Scores that choose the normalisation (paper protocol, networks trained on the material's own regions)
+    and Dong's alpha on one material; no ground truth is used."""
     from btfcore.superres.dong import dong_eigentextures
 
     _torch_threads()
     store = with_regions(btf_path)
     reference = np.asarray(store.btf[...], dtype=np.float32)
-    nets = {norm: load_model(path).model for norm, path in paper_models.items()}
-    est = _half_scale(store, _views(store), nets)
-    result = {"espcn_mre": {norm: scores(reference, est[norm])["mre"] for norm in nets},
-              "bicubic_mre": scores(reference, est["bicubic"])["mre"], "dong_mre": {}}
+    trained = own_models(btf_path, models_dir, NORMALISATIONS, ("paper",), training)
+    est = _half_scale(store, _views(store), {norm: trained[f"paper_{norm}"][0] for norm in NORMALISATIONS})
+    result = {"espcn_mre": {norm: scores(reference, est[norm])["mre"] for norm in NORMALISATIONS},
+              "bicubic_mre": scores(reference, est["bicubic"])["mre"], "dong_mre": {},
+              "training": {k: v[1] for k, v in trained.items()}}
     for alpha in alphas:
         dong = dong_eigentextures(est["half"], rank=dong_rank, factor=2, alpha=alpha)
         result["dong_mre"][str(alpha)] = scores(reference, dong)["mre"]
     return result
 
 
-def test_material(btf_path: str, capture_path: str, models: dict[str, str], normalisation: str, alpha: float,
-                  dong_rank: int, device_json: dict[str, Any], figures_dir: str) -> dict[str, Any]:
+def test_material(btf_path: str, capture_path: str, others: str | None, normalisation: str, alpha: float,
+                  dong_rank: int, device_json: dict[str, Any], figures_dir: str, models_dir: str,
+                  training: dict[str, Any]) -> dict[str, Any]:
     """Every score of one test material: both protocols, the regions' 2x truth, scale invariance, crops.
 
-    ``models``: model files ``exact`` (1/2 -> 1, the chosen normalisation) and ``paper_log``,
-    ``paper_scale`` (1/4 -> 1/2). ``device_json``: the simulated dome (``Device.to_json``).
+    The ESPCN is trained on the material's own regions (``training``): 1/2 -> 1 (``exact``) with the chosen
+    ``normalisation``, 1/4 -> 1/2 (``paper``) with both. ``others``: a model file trained on other materials
+    (the SR paper's split; scored as ``espcn_others`` in the exact protocol), or None. ``device_json``: the
+    simulated dome (``Device.to_json``).
     """
     from btfcore.dome import Device
     from btfcore.superres.dong import dong_eigentextures
@@ -212,23 +246,27 @@ def test_material(btf_path: str, capture_path: str, models: dict[str, str], norm
     btf1 = np.asarray(store.btf[...], dtype=np.float32)
     unit = led_scale(btf1, capture.truth["btf"][...], n_leds)
     views = _views(store)
-    exact, twice = load_model(models["exact"]).model, load_model(models[f"paper_{normalisation}"]).model
-    paper_nets = {norm: load_model(models[f"paper_{norm}"]).model for norm in NORMALISATIONS}
+    compared = NORMALISATIONS if training.get("compare_normalisations", True) else (normalisation,)
+    trained = {**own_models(btf_path, models_dir, (normalisation,), ("exact",), training),
+               **own_models(btf_path, models_dir, compared, ("paper",), training)}
+    nets = {"espcn": trained[f"exact_{normalisation}"][0], "espcn_twice": trained[f"paper_{normalisation}"][0]}
+    if others is not None:
+        nets["espcn_others"] = load_model(others).model
+    paper_nets = {norm: trained[f"paper_{norm}"][0] for norm in compared}
     # exact protocol: 1 -> 2 against the simulator's 2x truth, regions and textures
-    est2 = {m: np.empty((store.n_lv, 2 * h, 2 * w, 3), np.float32) for m in ("bicubic", "espcn", "espcn_twice")}
+    est2 = {m: np.empty((store.n_lv, 2 * h, 2 * w, 3), np.float32) for m in ("bicubic", *nets)}
     roi_scores: dict[str, list[dict[str, float]]] = {"bicubic": [], "espcn": []}
     for t, c, rows, regions, H in views:
         H2 = scale_homography(H, SUPERRES_FACTOR)
         truth_roi = roi_truth(device, capture.truth["btf_2x"][rows], t, c, SUPERRES_FACTOR)
-        for name, kw in (("bicubic", {"method": "bicubic"}), ("espcn", {"model": exact}),
-                         ("espcn_twice", {"model": twice})):
+        for name, kw in (("bicubic", {"method": "bicubic"}), *((n, {"model": net}) for n, net in nets.items())):
             up = upsample_regions(regions, **kw)
             est2[name][rows] = rectify_regions(up, H2, (2 * h, 2 * w), s)
             if name in roi_scores:
-                roi_scores[name].append(scores(truth_roi, _in_truth_units(up, unit[:, :])))
+                roi_scores[name].append(scores(truth_roi, _in_truth_units(up, unit)))
     est2["dong"] = dong_eigentextures(btf1, rank=dong_rank, factor=2, alpha=alpha)
     truth2 = np.asarray(capture.truth["btf_2x"][...], dtype=np.float32)
-    exact_scores = {m: scores(truth2, _in_truth_units(est2[m], unit)) for m in (*METHODS, "espcn_twice")}
+    exact_scores = {m: scores(truth2, _in_truth_units(est2[m], unit)) for m in est2}
     # paper protocol: 1/2 -> 1 against the measured BTF
     est1 = _half_scale(store, views, paper_nets)
     est1["dong"] = dong_eigentextures(est1["half"], rank=dong_rank, factor=2, alpha=alpha)
@@ -238,11 +276,13 @@ def test_material(btf_path: str, capture_path: str, models: dict[str, str], norm
     figures = _crops(Path(figures_dir), name, btf1, est2, truth2, unit)
     return {"material": name, "class": (store.attrs.get("material") or {}).get("class"),
             "exact": exact_scores, "paper": paper_scores,
-            "paper_normalisation": {norm: scores(btf1, est1[norm]) for norm in NORMALISATIONS},
+            "paper_normalisation": {norm: scores(btf1, est1[norm]) for norm in compared},
             "regions_exact": {m: {k: float(np.mean([r[k] for r in v])) for k in ("mrmse", "mpsnr", "mre")}
                               for m, v in roi_scores.items()},
             "scale_invariance": {"mre_trained_once": exact_scores["espcn"]["mre"],
                                  "mre_trained_twice": exact_scores["espcn_twice"]["mre"]},
+            "training": {k: v[1] for k, v in trained.items()},
+            "models": {k: str(Path(models_dir) / f"{name}-{k.replace('_', '-', 1)}.pt") for k in trained},
             "figures": figures, "seconds": round(time.perf_counter() - start, 2)}
 
 
@@ -273,9 +313,11 @@ def _crops(out: Path, name: str, btf1: np.ndarray, est2: dict[str, np.ndarray], 
 
 
 def mean_table(materials: list[dict[str, Any]], protocol: str) -> dict[str, dict[str, float]]:
-    """Means over the test materials of each method's scores under ``protocol``."""
+    """Means over the test materials of each method's scores under ``protocol`` (and of ``espcn_others``,
+    the training materials' network, where every material has it)."""
+    methods = [*METHODS, *(["espcn_others"] if all("espcn_others" in r[protocol] for r in materials) else [])]
     return {m: {k: float(np.mean([r[protocol][m][k] for r in materials])) for k in ("mrmse", "mpsnr", "mre")}
-            for m in METHODS}
+            for m in methods}
 
 
 def verdicts(materials: list[dict[str, Any]]) -> dict[str, Any]:

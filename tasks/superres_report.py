@@ -27,20 +27,29 @@ def _table2(materials: list[dict[str, Any]], protocol: str) -> list[Any]:
     rows: list[Any] = [_PAPER_HEADER if protocol == "paper" else _HEADER]
     for rec in materials:
         sc = rec[protocol]
-        for m in METHODS:
+        for m in (*METHODS, *(["espcn_others"] if "espcn_others" in sc else [])):
             cells = [f"{rec['material']} ({rec.get('class')})", m, sc[m]["mrmse"], sc[m]["mpsnr"], sc[m]["mre"]]
             beaten = m == "espcn" and any(not (sc[m]["mpsnr"] > sc[o]["mpsnr"] and sc[m]["mre"] < sc[o]["mre"])
                                           for o in ("bicubic", "dong"))
             rows.append(Row(cells, flag="ESPCN does not beat bicubic and Dong in both mPSNR and mRE" if beaten
                             else None))
     means = mean_table(materials, protocol)
-    rows += [["mean", m, means[m]["mrmse"], means[m]["mpsnr"], means[m]["mre"]] for m in METHODS]
+    rows += [["mean", m, v["mrmse"], v["mpsnr"], v["mre"]] for m, v in means.items()]
     return rows
 
 
 def _paper_rows() -> list[Any]:
     return [["material", "method", "mRMSE [paper's units]", "mPSNR [dB]", "mRE [%]"]] + [
         [name, m, *vals] for name, rec in PAPER_TABLE2.items() for m, vals in rec.items()]
+
+
+def training_rows(summary: dict[str, Any]) -> list[tuple[str, str, dict[str, Any]]]:
+    """``(material, model, training summary)`` of every network the evaluation trained or reused."""
+    rows = [(name, model, t) for name, v in summary["validation"].items() for model, t in v["training"].items()]
+    rows += [(rec["material"], model, t) for rec in summary["materials"] for model, t in rec["training"].items()]
+    if summary.get("training_others"):
+        rows.append((", ".join(summary["split"]["train"]), "others", summary["training_others"]))
+    return rows
 
 
 def write_superres_report(out_dir: str | os.PathLike, summary: dict[str, Any]) -> dict[str, str]:
@@ -55,10 +64,12 @@ def write_superres_report(out_dir: str | os.PathLike, summary: dict[str, Any]) -
     write_json(out / "report.json", summary)
     inv = verdict["scale_invariance"]
     cfg = summary["config"]
+    split = {k: ", ".join(v) or "none" for k, v in summary["split"].items()}
+    rows = "118" if cfg["fraction"] is None else f"{100 * cfg['fraction']:g} %"
     scale = (f"{cfg['device']} dome with {cfg['camera_scale']}x the camera pixels, {cfg['texture_size']}^2 texels; "
-             f"{cfg['materials_per_class']} leathers and {cfg['materials_per_class']} cloths: train "
-             f"{', '.join(summary['split']['train'])}; validation {', '.join(summary['split']['validation'])}; test "
-             f"{', '.join(summary['split']['test'])}; {100 * cfg['fraction']:g} % of each training material's rows")
+             f"{cfg['materials_per_class']} leather(s) and as many cloths: each validation and test material trains "
+             f"its own networks on {rows} of its rows; one network of the training materials "
+             f"({split['train']}); validation {split['validation']}; test {split['test']}")
     head = {"scale": scale, "normalisation chosen": summary["normalisation"], "Dong alpha": summary["dong_alpha"],
             "ESPCN beats Dong and bicubic on every test material (mPSNR and mRE, both protocols)":
                 Cell("yes" if verdict["espcn_beats_dong_and_bicubic"] else "no",
@@ -68,8 +79,8 @@ def write_superres_report(out_dir: str | os.PathLike, summary: dict[str, Any]) -
             "time [s]": summary["seconds"]}
     norm_rows: list[Any] = [["material", "normalisation", "mRMSE [BTF units]", "mPSNR [dB]", "mRE [%]"]]
     for rec in materials:
-        norm_rows += [[rec["material"], norm, *(rec["paper_normalisation"][norm][k] for k in ("mrmse", "mpsnr", "mre"))]
-                      for norm in NORMALISATIONS]
+        norm_rows += [[rec["material"], norm, *(sc[k] for k in ("mrmse", "mpsnr", "mre"))]
+                      for norm, sc in rec["paper_normalisation"].items()]
     val_rows: list[Any] = [["validation material", *(f"ESPCN {n} mRE [%]" for n in NORMALISATIONS), "bicubic mRE [%]"]]
     val_rows += [[name, *(v["espcn_mre"][n] for n in NORMALISATIONS), v["bicubic_mre"]]
                  for name, v in summary["validation"].items()]
@@ -99,10 +110,10 @@ def write_superres_report(out_dir: str | os.PathLike, summary: dict[str, Any]) -
          "figures": [f for rec in materials for f in rec["figures"]]},
         {"title": "Rendering", "text": f"`btf superres apply` wrote {summary['rendering']['store']}.",
          "figures": summary["rendering"]["figures"]},
-        {"title": "Training", "table": [["model", "protocol", "patches", "best epoch", "samples [1/s]", "time [s]",
-                                         "reused"]] + [
-            [name, t["protocol"], t["patches"], t["best_epoch"], t["samples_per_second"], t["seconds"],
-             "yes" if t.get("reused") else "no"] for name, t in summary["training"].items()]},
+        {"title": "Training (each material's own networks; 'others': the training materials' network)",
+         "table": [["material", "model", "patches", "best epoch", "samples [1/s]", "time [s]", "reused"]] + [
+            [material, name, t["patches"], t["best_epoch"], t["samples_per_second"], t["seconds"],
+             "yes" if t.get("reused") else "no"] for material, name, t in training_rows(summary)]},
     ]
     write_html(out / "report.html", "Super-resolution evaluation (SR paper, simulated leather and cloth)", head,
                sections)

@@ -94,8 +94,10 @@ class EspcnConfig:
         Odd kernel sizes of conv1-conv4 (SR paper §5.2.2: 5, 3, 3, 3).
     batch_norm : bool
         Batch norm after conv1-conv3, before the ReLU (SR paper §4.2).
-    normalisation : {'log', 'scale'}
-        Per-image input normalisation of HDR radiance (:func:`normalise`).
+    normalisation : {'scale', 'log'}
+        Per-image input normalisation of HDR radiance (:func:`normalise`). ``'scale'`` by default: on
+        the simulated leathers and cloths it measured better (docs/super-resolution.md, "Results");
+        ``'log'`` amplifies the noise of dark pixels and diverged on cloth.
     padding : {'reflect', 'zeros', 'replicate'}
         'same' padding mode of every convolution.
     """
@@ -104,7 +106,7 @@ class EspcnConfig:
     features: tuple[int, int, int] = (64, 32, 32)
     kernels: tuple[int, int, int, int] = (5, 3, 3, 3)
     batch_norm: bool = True
-    normalisation: str = "log"
+    normalisation: str = "scale"
     padding: str = "reflect"
 
     def __post_init__(self) -> None:

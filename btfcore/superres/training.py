@@ -190,7 +190,7 @@ def _tiles(images: np.ndarray, size: int, rows: int, cols: int) -> np.ndarray:
 
 
 def patch_pairs(low: np.ndarray, high: np.ndarray, *, size: int = 17, scale: int = 2,
-                normalisation: str = "log") -> tuple[np.ndarray, np.ndarray]:
+                normalisation: str = "scale") -> tuple[np.ndarray, np.ndarray]:
     """Non-overlapping LR / HR training tiles of image pairs (SR paper §5.2.2).
 
     Parameters

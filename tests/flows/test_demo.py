@@ -44,6 +44,12 @@ def test_demo_simulates_calibrates_ingests_and_reports(run_btf, tmp_path):
     assert "calibrated log Y" in html and "multiplexed" in html
     assert "noise-free floor, linear [1]" in html and "full-RGB floor, log Y [1]" in html
     assert "Ingested BTF beside the ground truth" in html and (out / "report_files" / "000-leather_ingest_lv0.png").exists()
+    # super-resolution on the demo's leather and cloth: every method scored, the crops in the demo's report
+    superres = report["superres"]
+    assert set(superres["means"]["exact"]) >= {"bicubic", "dong", "espcn"}
+    assert all(0 < v["mre"] < 100 for v in superres["means"]["paper"].values())
+    assert "Super-resolution (btf evaluate superres" in html and (out / "superres" / "report.html").is_file()
+    assert all((out / f["file"]).is_file() for f in superres["figures"]) and len(superres["figures"]) == 10
     btf = zarr.open_group(str(out / "btf-multiplexed" / "000-leather.zarr"), mode="r")
     assert btf.attrs["complete"] and "white-standard calibrated" in btf.attrs["units"]
     # a second run reuses every finished store
@@ -53,6 +59,7 @@ def test_demo_simulates_calibrates_ingests_and_reports(run_btf, tmp_path):
     again = json.loads((out / "report.json").read_text())
     assert again["stages"]["simulate"]["views_rendered"] == 0
     assert again["stages"]["ingest floors"]["reused"] == {"materials": [2, 2]}
+    assert again["stages"]["super-resolution"]["reused"] == {"models": [4, 4]}     # 2 networks per material
     assert again["ingest_floors"] == report["ingest_floors"]
     assert all(r["views_processed"] == 0 for r in again["ingest"].values())
     # and says so, per stage, in its report (and, with progress, in one line per stage)
