@@ -16,7 +16,7 @@ from prefect.cache_policies import NO_CACHE
 from flows.runtime import RETRY_ONCE
 
 
-def _epoch_lines(name: str, enabled: bool):
+def epoch_lines(name: str, enabled: bool):
     """``progress(epoch, record)`` of a training: one line per epoch (terminal or job log)."""
     from flows.progress import say
 
@@ -34,7 +34,7 @@ def train_stage(stores: list[str], model: str, protocol: str, fraction: float | 
     from tasks.superres import train_model
 
     return train_model(stores, model, protocol=protocol, fraction=fraction, config=config, settings=settings,
-                       progress=_epoch_lines(name, progress))
+                       progress=epoch_lines(name, progress))
 
 
 @flow(name="btf-superres-train", log_prints=False)

@@ -80,7 +80,7 @@ def run_superres_train(args: argparse.Namespace) -> int:
     """``btf superres train``: train in this process, print the summary."""
     from btfcore.superres.espcn import EspcnConfig
     from btfcore.superres.training import TrainingSettings
-    from flows.superres import _epoch_lines
+    from flows.superres import epoch_lines
     from tasks.superres import train_model
 
     if args.model or args.method != "espcn" or args.overwrite:
@@ -90,7 +90,7 @@ def run_superres_train(args: argparse.Namespace) -> int:
     config = EspcnConfig() if args.normalisation is None else EspcnConfig(normalisation=args.normalisation)
     settings = TrainingSettings(seed=args.seed, **({"max_epochs": args.epochs} if args.epochs else {}))
     summary = train_model(args.btf, args.out, protocol=args.protocol, fraction=args.fraction, config=config,
-                          settings=settings, progress=_epoch_lines("btf superres train", not args.no_progress))
+                          settings=settings, progress=epoch_lines("btf superres train", not args.no_progress))
     brief = {k: v for k, v in summary.items() if k not in ("history", "stores")}
     print(json.dumps({"command": "superres train", **brief, "epochs": len(summary["history"])}, indent=2,
                      default=str))

@@ -39,7 +39,7 @@ import numpy as np
 from btfcore.metrics import mpsnr, mre, mrmse
 from btfcore.superres.regions import rectify_regions, scale_homography, upsample_regions
 from btfcore.superres.scaling import area_downsample
-from tasks.superres import SUPERRES_FACTOR, load_model, view_rows, with_regions
+from tasks.superres import SUPERRES_FACTOR, load_model, one_torch_thread, view_rows, with_regions
 
 __all__ = ["METHODS", "NORMALISATIONS", "SuperresEvaluationConfig", "choose", "led_scale", "mean_table", "model_path",
            "scores", "test_material", "validation_material", "verdicts"]
@@ -172,12 +172,6 @@ def _half_scale(store: Any, views: list, networks: dict[str, Any]) -> dict[str, 
     return out
 
 
-def _torch_threads() -> None:
-    import torch
-
-    torch.set_num_threads(1)                        # one per Dask worker thread (docs/architecture.md, "Pitfalls")
-
-
 def own_models(btf_path: str, models_dir: str, normalisations: tuple[str, ...], protocols: tuple[str, ...],
                training: dict[str, Any]) -> dict[str, Any]:
     """Networks trained on the material's own regions (``training``: ``fraction``, ``seed``, ``max_epochs``),
@@ -207,7 +201,7 @@ def validation_material(btf_path: str, alphas: list[float], dong_rank: int, mode
     and Dong's alpha on one material; no ground truth is used."""
     from btfcore.superres.dong import dong_eigentextures
 
-    _torch_threads()
+    one_torch_thread()
     store = with_regions(btf_path)
     reference = np.asarray(store.btf[...], dtype=np.float32)
     trained = own_models(btf_path, models_dir, NORMALISATIONS, ("paper",), training)
@@ -236,7 +230,7 @@ def test_material(btf_path: str, capture_path: str, others: str | None, normalis
     from tasks.simulate import roi_truth
     from tasks.stores import open_capture_store
 
-    _torch_threads()
+    one_torch_thread()
     start = time.perf_counter()
     store, capture = with_regions(btf_path), open_capture_store(capture_path)
     device = Device.from_json(device_json)

@@ -43,7 +43,7 @@ from tasks.stores.btf import (
 )
 
 __all__ = ["MODEL_FORMAT", "PROTOCOLS", "LoadedModel", "apply_view", "check_apply", "load_model", "save_model",
-           "superres_apply", "superres_hash", "torch_device", "train_model", "training_images", "view_rows",
+           "one_torch_thread", "superres_apply", "superres_hash", "torch_device", "train_model", "training_images", "view_rows",
            "with_regions"]
 
 #: ``format`` of a model file.
@@ -56,6 +56,14 @@ PROTOCOLS: dict[str, int] = {"exact": 0, "paper": 1}
 #: 26,136-row BTF would be 1,307, so the count is what we follow, docs/super-resolution.md).
 PAPER_IMAGES = 118
 SUPERRES_FACTOR = 2
+
+
+def one_torch_thread() -> None:
+    """One torch thread in a Dask task: a worker runs as many tasks as it has threads (docs/architecture.md,
+    "Pitfalls": oversubscribed BLAS threads)."""
+    import torch
+
+    torch.set_num_threads(1)
 
 
 def torch_device() -> str:
@@ -336,9 +344,7 @@ def check_apply(btf_path: str | os.PathLike, model_path: str | os.PathLike | Non
 
 def apply_view(source_path: str, model_path: str | None, out_path: str, method: str, t: int, c: int) -> tuple[int, int]:
     """Up-sample view ``(t, c)``'s regions, rectify them at twice the texture size, write the view's rows."""
-    import torch
-
-    torch.set_num_threads(1)                     # one thread per Dask worker thread (docs/architecture.md, "Pitfalls")
+    one_torch_thread()
     source, out = BtfStore(source_path), BtfStore(out_path, "r+")
     rows = view_rows(source, t, c)
     regions = _finite(np.asarray(source.group["roi"][rows], dtype=np.float32), f"{source_path}, view {(t, c)}")

@@ -48,6 +48,13 @@ def test_train_then_apply(run_btf, regions):
     assert np.isfinite(store.btf[...]).all()
     code, out, _ = run_btf("validate", "--deep", regions / "sr.zarr")
     assert code == 0 and "valid" in out
+    # angular resampling takes the 2x store like an ingested one
+    sampling = regions / "sampling.json"
+    sampling.write_text(json.dumps({"light_dirs": [[0, 0, 1], [0.3, 0, 0.95]], "view_dirs": [[0, 0, 1], [0, 0.2, 0.98]]}))
+    code, out, err = run_btf("resample", regions / "sr.zarr", "--out", regions / "sr-resampled.zarr",
+                             "--sampling", sampling)
+    assert code == 0, err
+    assert open_btf_store(regions / "sr-resampled.zarr").btf.shape == (4, 32, 32, 3)
     code, out, _ = run_btf("superres", "apply", regions / "roi.zarr", "--model", regions / "m.pt",
                            "--out", regions / "sr.zarr")
     assert code == 0 and json.loads(out)["views_skipped"] == 4                  # a finished output is reused
