@@ -192,13 +192,12 @@ def _demo_superres(out: Path, stores: list[str], scheduler_address: str, seed: i
     captures = [first[c] for c in ("leather", "cloth") if c in first]
     summary = evaluate_superres_flow(str(out / "superres"), scheduler_address,
                                      DEMO_SUPERRES.with_seed(seed), progress, captures=captures)
-    trained = [t for rec in summary["materials"] for t in rec["training"].values()]
-    reused = sum(bool(t.get("reused")) for t in trained)
+    reused = sum(bool(rec.get("reused")) for rec in summary["materials"])
     return {"report_html": str(out / "superres" / "report.html"), "means": summary["means"],
             "verdicts": summary["verdicts"], "normalisation": summary["normalisation"],
             "figures": [dict(f, file=f"superres/{f['file']}") for rec in summary["materials"] for f in rec["figures"]],
             "seconds": round(time.perf_counter() - start, 3),
-            "reused": {"models": [reused, len(trained)]}}
+            "reused": {"materials": [reused, len(summary["materials"])]}}
 
 
 def _said(name: str, figures: dict[str, Any], progress: bool) -> dict[str, Any]:

@@ -28,6 +28,8 @@ Metrics are the SR paper's eqs. (8)-(10) (:mod:`btfcore.metrics`).
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 import os
 import time
 from dataclasses import asdict, dataclass
@@ -39,6 +41,7 @@ import numpy as np
 from btfcore.metrics import mpsnr, mre, mrmse
 from btfcore.superres.regions import rectify_regions, scale_homography, upsample_regions
 from btfcore.superres.scaling import area_downsample
+from tasks.report import write_json
 from tasks.superres import SUPERRES_FACTOR, load_model, one_torch_thread, view_rows, with_regions
 
 __all__ = ["METHODS", "NORMALISATIONS", "SuperresEvaluationConfig", "choose", "led_scale", "mean_table", "model_path",
@@ -47,6 +50,8 @@ __all__ = ["METHODS", "NORMALISATIONS", "SuperresEvaluationConfig", "choose", "l
 #: The methods of the SR paper's Table 2 and the floor, in the report's order.
 METHODS: tuple[str, ...] = ("bicubic", "dong", "espcn")
 NORMALISATIONS: tuple[str, ...] = ("log", "scale")
+#: Version of a test material's cached scores (``MODELS_DIR/<material>.scores.json``): bump when they change.
+SCORES_VERSION = 1
 
 
 @dataclass(frozen=True)
@@ -233,6 +238,13 @@ def test_material(btf_path: str, capture_path: str, others: str | None, normalis
     one_torch_thread()
     start = time.perf_counter()
     store, capture = with_regions(btf_path), open_capture_store(capture_path)
+    key = _scores_key(store, capture, others, normalisation, alpha, dong_rank, training)
+    cached = Path(models_dir) / f"{Path(btf_path).stem}.scores.json"
+    if cached.is_file():
+        previous = json.loads(cached.read_text())
+        if previous.get("key") == key and all((Path(figures_dir).parent / f["file"]).is_file()
+                                              for f in previous["result"]["figures"]):
+            return {**previous["result"], "reused": True}
     device = Device.from_json(device_json)
     n_leds = int(store.attrs["turntable_cameras_leds"][2])
     h, w = store.texture_shape
@@ -268,7 +280,7 @@ def test_material(btf_path: str, capture_path: str, others: str | None, normalis
     paper_scores = {m: scores(btf1, est1[m]) for m in METHODS}
     name = Path(btf_path).stem
     figures = _crops(Path(figures_dir), name, btf1, est2, truth2, unit)
-    return {"material": name, "class": (store.attrs.get("material") or {}).get("class"),
+    result = {"material": name, "class": (store.attrs.get("material") or {}).get("class"),
             "exact": exact_scores, "paper": paper_scores,
             "paper_normalisation": {norm: scores(btf1, est1[norm]) for norm in compared},
             "regions_exact": {m: {k: float(np.mean([r[k] for r in v])) for k in ("mrmse", "mpsnr", "mre")}
@@ -278,6 +290,17 @@ def test_material(btf_path: str, capture_path: str, others: str | None, normalis
             "training": {k: v[1] for k, v in trained.items()},
             "models": {k: str(Path(models_dir) / f"{name}-{k.replace('_', '-', 1)}.pt") for k in trained},
             "figures": figures, "seconds": round(time.perf_counter() - start, 2)}
+    write_json(cached, {"key": key, "result": result})
+    return {**result, "reused": False}
+
+
+def _scores_key(store: Any, capture: Any, others: str | None, normalisation: str, alpha: float, dong_rank: int,
+                training: dict[str, Any]) -> str:
+    """What a test material's scores depend on: its BTF and capture, the others' network, the choices."""
+    payload = {"btf": store.content_key, "capture": (capture.group.attrs.get("provenance") or {}).get("config_hash"),
+               "others": None if others is None else load_model(others).sha256, "normalisation": normalisation,
+               "alpha": alpha, "rank": dong_rank, "training": training, "version": SCORES_VERSION}
+    return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:16]
 
 
 def _crops(out: Path, name: str, btf1: np.ndarray, est2: dict[str, np.ndarray], truth2: np.ndarray,

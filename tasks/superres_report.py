@@ -46,7 +46,8 @@ def _paper_rows() -> list[Any]:
 def training_rows(summary: dict[str, Any]) -> list[tuple[str, str, dict[str, Any]]]:
     """``(material, model, training summary)`` of every network the evaluation trained or reused."""
     rows = [(name, model, t) for name, v in summary["validation"].items() for model, t in v["training"].items()]
-    rows += [(rec["material"], model, t) for rec in summary["materials"] for model, t in rec["training"].items()]
+    rows += [(rec["material"], model, {**t, "reused": t.get("reused") or rec.get("reused")})
+             for rec in summary["materials"] for model, t in rec["training"].items()]
     if summary.get("training_others"):
         rows.append((", ".join(summary["split"]["train"]), "others", summary["training_others"]))
     return rows

@@ -59,7 +59,7 @@ def test_demo_simulates_calibrates_ingests_and_reports(run_btf, tmp_path):
     again = json.loads((out / "report.json").read_text())
     assert again["stages"]["simulate"]["views_rendered"] == 0
     assert again["stages"]["ingest floors"]["reused"] == {"materials": [2, 2]}
-    assert again["stages"]["super-resolution"]["reused"] == {"models": [4, 4]}     # 2 networks per material
+    assert again["stages"]["super-resolution"]["reused"] == {"materials": [2, 2]}   # scores and networks
     assert again["ingest_floors"] == report["ingest_floors"]
     assert all(r["views_processed"] == 0 for r in again["ingest"].values())
     # and says so, per stage, in its report (and, with progress, in one line per stage)
