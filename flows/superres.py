@@ -1,5 +1,5 @@
-"""Prefect flows of super-resolution (SR paper): ``btf superres train``, ``btf superres apply`` and
-``btf evaluate superres``.
+"""Prefect flows of super-resolution (SR paper): ``btf superres apply`` and ``btf evaluate superres``
+(``btf superres train`` runs in its own process, :mod:`flows.superres_cli`; its stage is reused here).
 
 Wiring only: the numerics are :mod:`btfcore.superres`, the stores and model files
 :mod:`tasks.superres`, the evaluation :mod:`tasks.evaluate_superres` (docs/super-resolution.md).
@@ -35,13 +35,6 @@ def train_stage(stores: list[str], model: str, protocol: str, fraction: float | 
 
     return train_model(stores, model, protocol=protocol, fraction=fraction, config=config, settings=settings,
                        progress=epoch_lines(name, progress))
-
-
-@flow(name="btf-superres-train", log_prints=False)
-def superres_train_flow(stores: list[str], model: str, protocol: str = "exact", fraction: float | None = None,
-                        config: Any = None, settings: Any = None, progress: bool = True) -> dict[str, Any]:
-    """Train the ESPCN of SR paper §4 on the regions of interest of ``stores`` and write ``model``."""
-    return train_stage(stores, model, protocol, fraction, config, settings, progress)
 
 
 @task(name="superres-apply", **RETRY_ONCE, cache_policy=NO_CACHE)

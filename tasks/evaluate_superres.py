@@ -41,10 +41,11 @@ import numpy as np
 from btfcore.metrics import mpsnr, mre, mrmse
 from btfcore.superres.regions import rectify_regions, scale_homography, upsample_regions
 from btfcore.superres.scaling import area_downsample
+from tasks.ingest import led_scale
 from tasks.report import write_json
 from tasks.superres import SUPERRES_FACTOR, load_model, one_torch_thread, view_rows, with_regions
 
-__all__ = ["METHODS", "NORMALISATIONS", "SuperresEvaluationConfig", "choose", "led_scale", "mean_table", "model_path",
+__all__ = ["METHODS", "NORMALISATIONS", "SuperresEvaluationConfig", "choose", "mean_table", "model_path",
            "scores", "test_material", "validation_material", "verdicts"]
 
 #: The methods of the SR paper's Table 2 and the floor, in the report's order.
@@ -131,16 +132,6 @@ def scores(reference: np.ndarray, estimate: np.ndarray) -> dict[str, float]:
     return {"mrmse": mrmse(reference, estimate), "mpsnr": mpsnr(reference, estimate), "mre": mre(reference, estimate)}
 
 
-def led_scale(btf: np.ndarray, truth: np.ndarray, n_leds: int) -> np.ndarray:
-    """The least-squares factor per (light, channel) that maps ``btf`` to ``truth`` over every view and texel.
-
-    ``btf``, ``truth``: ``(n_lv, h, w, 3)`` with rows over (turntable, camera, light). Returns ``(n_leds, 3)``.
-    """
-    b = np.asarray(btf, dtype=np.float64).reshape(-1, n_leds, *btf.shape[1:])
-    g = np.asarray(truth, dtype=np.float64).reshape(b.shape)
-    return (b * g).sum(axis=(0, 2, 3)) / np.maximum((b * b).sum(axis=(0, 2, 3)), 1e-300)
-
-
 def _in_truth_units(x: np.ndarray, scale: np.ndarray) -> np.ndarray:
     n_leds = scale.shape[0]
     return (x.reshape(-1, n_leds, *x.shape[1:]) * scale[None, :, None, None, :].astype(np.float32)).reshape(x.shape)
@@ -149,13 +140,9 @@ def _in_truth_units(x: np.ndarray, scale: np.ndarray) -> np.ndarray:
 def _views(store: Any) -> list[tuple[int, int, slice, np.ndarray, np.ndarray]]:
     """``(t, c, rows, regions, homography)`` of every view of a store with regions (read view by view)."""
     n_turn, n_cam, _ = store.attrs["turntable_cameras_leds"]
-    out = []
-    for t in range(n_turn):
-        for c in range(n_cam):
-            rows = view_rows(store, t, c)
-            out.append((t, c, rows, np.asarray(store.group["roi"][rows], dtype=np.float32),
-                        np.asarray(store.group["homography"][t, c])))
-    return out
+    homography = store.homography
+    return [(t, c, view_rows(store, t, c), np.asarray(store.roi[view_rows(store, t, c)], dtype=np.float32),
+             homography[t, c]) for t in range(n_turn) for c in range(n_cam)]
 
 
 def _half_scale(store: Any, views: list, networks: dict[str, Any]) -> dict[str, np.ndarray]:
@@ -251,6 +238,7 @@ def test_material(btf_path: str, capture_path: str, others: str | None, normalis
     s = float(store.attrs["sample_size_m"])
     btf1 = np.asarray(store.btf[...], dtype=np.float32)
     unit = led_scale(btf1, capture.truth["btf"][...], n_leds)
+    truth2 = np.asarray(capture.truth["btf_2x"][...], dtype=np.float32)
     views = _views(store)
     compared = NORMALISATIONS if training.get("compare_normalisations", True) else (normalisation,)
     trained = {**own_models(btf_path, models_dir, (normalisation,), ("exact",), training),
@@ -264,14 +252,13 @@ def test_material(btf_path: str, capture_path: str, others: str | None, normalis
     roi_scores: dict[str, list[dict[str, float]]] = {"bicubic": [], "espcn": []}
     for t, c, rows, regions, H in views:
         H2 = scale_homography(H, SUPERRES_FACTOR)
-        truth_roi = roi_truth(device, capture.truth["btf_2x"][rows], t, c, SUPERRES_FACTOR)
+        truth_roi = roi_truth(device, truth2[rows], t, c, SUPERRES_FACTOR)
         for name, kw in (("bicubic", {"method": "bicubic"}), *((n, {"model": net}) for n, net in nets.items())):
             up = upsample_regions(regions, **kw)
             est2[name][rows] = rectify_regions(up, H2, (2 * h, 2 * w), s)
             if name in roi_scores:
                 roi_scores[name].append(scores(truth_roi, _in_truth_units(up, unit)))
     est2["dong"] = dong_eigentextures(btf1, rank=dong_rank, factor=2, alpha=alpha)
-    truth2 = np.asarray(capture.truth["btf_2x"][...], dtype=np.float32)
     exact_scores = {m: scores(truth2, _in_truth_units(est2[m], unit)) for m in est2}
     # paper protocol: 1/2 -> 1 against the measured BTF
     est1 = _half_scale(store, views, paper_nets)

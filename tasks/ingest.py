@@ -90,6 +90,7 @@ __all__ = [
     "ingest_capture",
     "ingest_hash",
     "ingest_view",
+    "led_scale",
     "reused_buffer",
     "staging_path",
     "view_chain_arguments",
@@ -425,10 +426,22 @@ def errors_against_truth(btf: np.ndarray, truth: np.ndarray, n_leds: int, calibr
     rows over (turntable, camera, light) with ``n_leds`` lights; the ``calibrated_*`` ones with ``calibrated``."""
     b = np.asarray(btf, dtype=np.float64).reshape(-1, n_leds, *btf.shape[1:])
     g = np.asarray(truth, dtype=np.float64).reshape(b.shape)
-    scale = (b * g).sum(axis=(0, 2, 3)) / np.maximum((b * b).sum(axis=(0, 2, 3)), 1e-300)   # (n_leds, 3)
-    rel_linear, rel_log = _relative_errors(b * scale[None, :, None, None, :], g)
+    rel_linear, rel_log = _relative_errors(b * led_scale(b, g, n_leds)[None, :, None, None, :], g)
     errors = {"relative_l2_linear": rel_linear, "relative_l2_log_y": rel_log}
     if calibrated:
         rel_linear, rel_log = _relative_errors(b, g)
         errors.update({"calibrated_relative_l2_linear": rel_linear, "calibrated_relative_l2_log_y": rel_log})
     return errors
+
+
+def led_scale(btf: np.ndarray, truth: np.ndarray, n_leds: int) -> np.ndarray:
+    """The least-squares factor per (light, channel) that maps ``btf`` to ``truth`` over every view and texel
+    (what a white-standard calibration measures).
+
+    ``btf``, ``truth``: ``(n_lv, h, w, 3)`` (or already ``(n_views, n_leds, h, w, 3)``) with rows over
+    (turntable, camera, light). Returns ``(n_leds, 3)``.
+    """
+    b = np.asarray(btf, dtype=np.float64).reshape(-1, n_leds, *np.shape(btf)[-3:])
+    g = np.asarray(truth, dtype=np.float64).reshape(b.shape)
+    return (b * g).sum(axis=(0, 2, 3)) / np.maximum((b * b).sum(axis=(0, 2, 3)), 1e-300)
+

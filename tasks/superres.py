@@ -191,7 +191,7 @@ def with_regions(path: str | os.PathLike, hint: str = "") -> BtfStore:
     """Open a finished BTF store that holds regions of interest (``btf ingest --keep-roi``), or say why not."""
     store = open_btf_store(path, produced_by="`btf ingest --keep-roi`",
                            ingested_only="super-resolution works on the regions of an ingested store")
-    if "roi" not in store.group or "homography" not in store.group:
+    if store.roi is None or "homography" not in store.group:
         raise ValueError(f"{path}: the store holds no regions of interest (arrays roi, homography); ingest the "
                          f"capture again with `btf ingest CAPTURE --out BTF --keep-roi`{hint}")
     return store
@@ -240,7 +240,7 @@ def training_images(stores: list[BtfStore], *, protocol: str = "exact", fraction
         n_lv = store.n_lv
         n = min(n_lv, PAPER_IMAGES) if fraction is None else max(1, int(round(fraction * n_lv)))
         rows = np.sort(rng.choice(n_lv, size=n, replace=False))
-        high = _finite(np.asarray(store.group["roi"].oindex[rows, :, :, :], dtype=np.float32), str(store.path))
+        high = _finite(np.asarray(store.roi.oindex[rows, :, :, :], dtype=np.float32), str(store.path))
         for _ in range(PROTOCOLS[protocol]):
             high = area_downsample(high, 2)
         low = area_downsample(high, 2)
@@ -347,12 +347,12 @@ def apply_view(source_path: str, model_path: str | None, out_path: str, method: 
     one_torch_thread()
     source, out = BtfStore(source_path), BtfStore(out_path, "r+")
     rows = view_rows(source, t, c)
-    regions = _finite(np.asarray(source.group["roi"][rows], dtype=np.float32), f"{source_path}, view {(t, c)}")
+    regions = _finite(np.asarray(source.roi[rows], dtype=np.float32), f"{source_path}, view {(t, c)}")
     device = torch_device()
     model = None if model_path is None else _cached_model(model_path, device).model
     up = upsample_regions(regions, method=method, model=model, factor=SUPERRES_FACTOR, device=device)
     h, w = out.texture_shape
-    H = scale_homography(source.group["homography"][t, c], SUPERRES_FACTOR)
+    H = scale_homography(source.homography[t, c], SUPERRES_FACTOR)
     out.group["btf"][rows] = rectify_regions(up, H, (h, w), float(source.attrs["sample_size_m"]))
     out.group["written"][t, c] = 1                                                 # marker after the data
     return t, c
