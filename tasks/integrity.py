@@ -257,6 +257,8 @@ def rerun_hint(attrs: dict[str, Any]) -> str:
             stage = "`btf evaluate acquisition` into a fresh --out folder"
         elif "reconstruct_hash" in attrs:
             stage = "`btf reconstruct --overwrite`"
+        elif "import_hash" in attrs:
+            stage = "`btf import-btf --overwrite`"
         else:
             stage = "`btf ingest --overwrite`"
         return f"re-run {stage} or restore the store from a backup"
@@ -378,6 +380,7 @@ WRITTEN_RULES: dict[str, list[tuple[str, str, tuple[int, ...]]]] = {
     "btf-capture": [("raw", "written", (0, 1, 2))],         # not dark frames: all-zero ones are accepted
     "btf-texture": [("btf", "written", (0,)), ("roi", "written", (0,))],   # ingest (view), resample (target view)
     "btf-texture/reconstruct": [("btf", "written", (1,))],  # btf reconstruct: one marker per band
+    "btf-texture/import": [("btf", "written", (0, 1))],     # btf import-btf: one marker per view x band
     "btf-measurement": [("measured", "written", (0,))],
 }
 
@@ -389,6 +392,8 @@ def _rules(group: zarr.Group, attrs: dict[str, Any]) -> list[tuple[str, str, tup
         return WRITTEN_RULES[schema] if isinstance(black, (int, float)) and black > 0 else []
     if schema == "btf-texture" and "reconstruct_hash" in attrs:
         return WRITTEN_RULES["btf-texture/reconstruct"]
+    if schema == "btf-texture" and "import_hash" in attrs:
+        return WRITTEN_RULES["btf-texture/import"]
     return WRITTEN_RULES.get(schema, [])
 
 

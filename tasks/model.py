@@ -177,7 +177,8 @@ def discover(db: str | os.PathLike, class_map: dict[str, str] | None = None,
             problems.append(f"{path}: another light/view sampling ({where}); resample both to one sampling "
                             "(btf resample) before building a database")
             continue
-        found.append(Material(material.get("material_id") or path.stem, str(cls), str(path), attrs["ingest_hash"],
+        key = attrs.get("ingest_hash") or attrs.get("import_hash")      # ingested, or imported (btf import-btf)
+        found.append(Material(material.get("material_id") or path.stem, str(cls), str(path), key,
                               int(light.shape[0]), tuple(attrs["texture_shape"]), rows_fingerprint(light, view)))
     counts: dict[str, list[str]] = {}
     for m in found:

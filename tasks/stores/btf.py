@@ -14,6 +14,8 @@ Three stages write one, each with its own content key and rows:
 - ``btf resample`` (:mod:`tasks.resample`): rows ``(view, light)``, key ``resample_hash``;
 - ``btf reconstruct`` (:mod:`tasks.reconstruct`): rows as ingested, one marker per band of texture
   rows, key ``reconstruct_hash``.
+- ``btf import-btf`` (:mod:`tasks.bonn.import_btf`): a Bonn BTF file's rows ``(view, light)``, one
+  marker per chunk (view x band of texture rows), key ``import_hash``.
 
 :func:`create_btf_store` writes the common layout, :func:`open_btf_store` gives a reader a
 :class:`BtfStore` after the checks every reader needs (schema name and version, finished, the arrays
@@ -59,11 +61,11 @@ UNCORRECTED_UNITS = "DN/s per unit LED drive, before radiometric correction"
 #: Bytes of one chunk of the ``btf`` array that :func:`band_rows` aims for.
 CHUNK_BYTES = 4 << 20
 #: The commands that write a BTF store, for messages.
-PRODUCERS = "`btf ingest`, `btf resample`, `btf reconstruct` or `btf superres apply`"
+PRODUCERS = "`btf ingest`, `btf import-btf`, `btf resample`, `btf reconstruct` or `btf superres apply`"
 #: Attributes every BTF store has (besides one content key of :data:`CONTENT_KEYS`).
 REQUIRED_ATTRS = ("schema", "schema_version", "units", "lv_order", "texture_shape", "complete")
 #: What identifies a store's content, by the stage that wrote it.
-CONTENT_KEYS = ("ingest_hash", "resample_hash", "reconstruct_hash", "superres_hash")
+CONTENT_KEYS = ("ingest_hash", "resample_hash", "reconstruct_hash", "superres_hash", "import_hash")
 #: Unit length tolerance of the direction arrays.
 UNIT_TOL = 1e-6
 
@@ -383,16 +385,23 @@ class BtfStore:
         return "reconstruct_hash" in self.group.attrs
 
     @property
+    def is_imported(self) -> bool:
+        """Written by ``btf import-btf`` from a Bonn BTF file (attribute ``imported_from``)."""
+        return "imported_from" in self.group.attrs
+
+    @property
     def kind(self) -> str:
-        """``"resampled"``, ``"reconstructed"`` or ``"ingested"``: which stage wrote it."""
-        return "resampled" if self.is_resampled else "reconstructed" if self.is_reconstructed else "ingested"
+        """``"resampled"``, ``"reconstructed"``, ``"imported"`` or ``"ingested"``: which stage wrote it."""
+        return ("resampled" if self.is_resampled else "reconstructed" if self.is_reconstructed
+                else "imported" if self.is_imported else "ingested")
 
     @property
     def content_key(self) -> str | None:
         """What identifies the content: its ingest hash (or, resampled, its resample hash; super-resolved,
-        its superres hash)."""
+        its superres hash; imported from a Bonn file, its import hash)."""
         attrs = self.group.attrs
-        return attrs.get("ingest_hash") or attrs.get("resample_hash") or attrs.get("superres_hash")
+        return (attrs.get("ingest_hash") or attrs.get("resample_hash") or attrs.get("superres_hash")
+                or attrs.get("import_hash"))
 
 
 # --------------------------------------------------------------------------- validating
