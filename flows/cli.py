@@ -33,6 +33,8 @@ from typing import Any
 from flows import arguments
 from flows.acquisition_cli import (PLAN_HELP, RENDER_HELP, SAMPLE_HELP, add_plan_arguments, add_render_arguments,
                                    add_sample_arguments, run_plan, run_render, run_sample)
+from flows.bonn_cli import (EXPORT_HELP, IMPORT_HELP, add_export_arguments, add_import_arguments, import_btf_flow,
+                            prepare_import, run_export)
 from flows.progress import say
 from flows.server import CHILD_ENV, SERVER_HELP, add_server_arguments, run_server
 from flows.superres_cli import (SUPERRES_HELP, add_superres_arguments, evaluate_superres_flow, prepare_superres,
@@ -512,6 +514,12 @@ COMMANDS: dict[str, Command] = {command.name: command for command in (
                         "in each header. Textures with NaN or Inf texels are refused (the message names the rows and "
                         "counts) before any file is written, unless --keep-nonfinite.",
             add_arguments=arguments.export_exr, run=_export_exr, inputs={"btf": "BTF"}),
+    Command("import-btf", help="import a Bonn BTF file (DFMF, FMF, BDI, PVF) into a BTF store",
+            description=IMPORT_HELP, raw_description=True, add_arguments=add_import_arguments, prepare=prepare_import,
+            flow=import_btf_flow, inputs={"file": "FILE"}),
+    Command("export", help="write a BTF store as a Bonn BTF file (DFMF, FMF or BDI)",
+            description=EXPORT_HELP, raw_description=True, add_arguments=add_export_arguments, run=run_export,
+            inputs={"store": "STORE", "basis": "--basis"}),
     Command("evaluate", help="measure a result against the simulator's ground truth",
             description="Compare a result with the ground truth of a simulated capture and print the metrics as "
                         "JSON; they are also written to --report.",

@@ -284,9 +284,9 @@ def create_resampled_store(path: str | os.PathLike, source_path: str | os.PathLi
     outside = outside_view | outside_light
     attrs = source.attrs
     resampled_from = {"path": str(Path(source_path).resolve()), "ingest_hash": attrs.get("ingest_hash")}
-    for key in ("resample_hash", "import_hash"):
-        if attrs.get(key):
-            resampled_from[key] = attrs[key]
+    for source_key in ("resample_hash", "import_hash"):
+        if attrs.get(source_key):
+            resampled_from[source_key] = attrs[source_key]
     return create_btf_store(path, {
         "units": attrs.get("units"), "lv_order": RESAMPLED_LV_ORDER, "views_lights": [n_v, n_l],
         "sampling": sampling.name, "resampled_from": resampled_from, "resample_hash": key,

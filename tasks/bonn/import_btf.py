@@ -543,6 +543,9 @@ def _create_store(plan: ImportPlan, material: dict[str, str] | None) -> BtfStore
     attrs = {
         "units": _units(fmt, plan.signature, bool(hd.cosine_flag)),
         "lv_order": RESAMPLED_LV_ORDER, "views_lights": [n_v, n_l],
+        # the rows as one turntable position of n_v cameras x n_l lights (the same row-major flattening),
+        # which `btf build-db` and `btf reconstruct` read from every store they take
+        "turntable_cameras_leds": [1, n_v, n_l],
         "import_hash": plan.key,
         "imported_from": {"path": plan.source, "sha256": plan.file_sha256, "bytes": plan.file_bytes,
                           "format": fmt, "signature": plan.signature, "decoder": DECODER_VERSION},
