@@ -6,8 +6,13 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 OUT    ?= demo-output
 PYTEST_ARGS ?=
+# The independent Bonn BTF readers (btf-extractor, pysmtb) need numpy < 2, the project numpy >= 2: they
+# live in their own venv, built once by `make test`; tests/tasks/test_bonn_independent.py runs them there
+# (docs/bonn-formats.md, "Independent readers").
+VENV_READERS ?= .venv-readers
+READERS_LOG  := $(VENV_READERS).log
 
-.PHONY: demo test bench venv clean
+.PHONY: demo test bench venv clean readers
 
 venv: $(STAMP)
 
@@ -16,13 +21,35 @@ $(STAMP): pyproject.toml
 	$(BIN)/pip install --quiet --disable-pip-version-check -e '.[test]'
 	touch $(STAMP)
 
+# A failed build does not fail `make test`: the log keeps pip's output and the cross-check tests skip,
+# quoting its last error line. The log marks the attempt as made; `make readers` tries again.
+$(READERS_LOG):
+	@echo "building $(VENV_READERS) (btf-extractor, pysmtb; under a minute; log: $(READERS_LOG))"
+	@rm -rf $(VENV_READERS); start=$$(date +%s); \
+	if { $(PYTHON) -m venv $(VENV_READERS) \
+	  && $(VENV_READERS)/bin/pip install --disable-pip-version-check \
+	       "numpy<2" "nptyping<2" "cython<0.30" poetry-core setuptools simplejpeg \
+	  && $(VENV_READERS)/bin/pip install --disable-pip-version-check --no-build-isolation \
+	       btf-extractor==1.7.0 pysmtb==0.4.0 \
+	  && touch $(VENV_READERS)/.installed; } > $@ 2>&1; then \
+	  echo "built $(VENV_READERS) in $$(( $$(date +%s) - start )) s" | tee -a $@; \
+	else \
+	  echo "FAILED to build $(VENV_READERS) after $$(( $$(date +%s) - start )) s" >> $@; \
+	  echo "could not build $(VENV_READERS) (see $(READERS_LOG)); the independent-reader tests will be skipped"; \
+	fi
+
+readers:
+	@rm -f $(READERS_LOG)
+	@$(MAKE) --no-print-directory $(READERS_LOG)
+
 demo: $(STAMP)
 	$(BIN)/btf demo --out $(OUT)
 
 # pytest exits 5 when it collected no test (e.g. a -k filter that matches
 # nothing); say so plainly instead of failing with a bare status.
-test: $(STAMP)
-	@$(BIN)/python -m pytest $(PYTEST_ARGS); rc=$$?; \
+test: $(STAMP) $(READERS_LOG)
+	@BTF_READERS_PYTHON="$${BTF_READERS_PYTHON:-$(abspath $(VENV_READERS))/bin/python}" \
+	  $(BIN)/python -m pytest $(PYTEST_ARGS); rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "pytest collected no tests (exit 5); nothing was checked"; exit 0; fi; \
 	exit $$rc
 
@@ -31,4 +58,4 @@ bench: $(STAMP)
 	@for f in benchmarks/bench_*.py; do echo "== $$f"; $(BIN)/python $$f || exit 1; done
 
 clean:
-	rm -rf $(VENV) $(OUT) .pytest_cache
+	rm -rf $(VENV) $(OUT) .pytest_cache $(VENV_READERS) $(READERS_LOG)
