@@ -12,6 +12,8 @@ import threading
 import time
 from collections.abc import Callable
 
+import numpy as np
+
 
 def log(msg: str) -> None:
     """A progress line on stderr (stdout carries the JSON result), with the time and the 1-minute load."""
@@ -72,6 +74,15 @@ class WorkerRSS:
         self._stop.set()
         self._thread.join()
         self.restarted = set(self.client.scheduler_info()["workers"]) != self._workers
+
+
+def gemm_rate(m: int, kk: int, n: int, repeats: int = 3) -> float:
+    """GFLOP/s of a float32 ``(m, kk) @ (kk, n)`` numpy GEMM, best of ``repeats``."""
+    rng = np.random.default_rng(0)
+    A = rng.standard_normal((m, kk), dtype=np.float32)
+    B = rng.standard_normal((kk, n), dtype=np.float32)
+    C = np.empty((m, n), np.float32)
+    return 2.0 * m * kk * n / best_seconds(lambda: np.matmul(A, B, out=C), repeats) / 1e9
 
 
 def torch_gemm_rate(n: int = 2048, repeats: int = 3) -> float:

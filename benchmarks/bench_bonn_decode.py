@@ -47,19 +47,10 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-from _measure import best_seconds, log
+from _measure import gemm_rate, log
 
 ROOT = Path(__file__).resolve().parents[1]
 READERS_SCRIPT = ROOT / "tests" / "tasks" / "bonn_readers.py"
-
-
-def gemm_rate(m: int, kk: int, n: int, repeats: int = 3) -> float:
-    """GFLOP/s of a float32 ``(m, kk) @ (kk, n)`` numpy GEMM, best of ``repeats``."""
-    rng = np.random.default_rng(0)
-    A = rng.standard_normal((m, kk), dtype=np.float32)
-    B = rng.standard_normal((kk, n), dtype=np.float32)
-    C = np.empty((m, n), np.float32)
-    return 2.0 * m * kk * n / best_seconds(lambda: np.matmul(A, B, out=C), repeats) / 1e9
 
 
 def write_file(path: Path, n_l: int, side: int, k: int, seed: int) -> None:

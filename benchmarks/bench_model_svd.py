@@ -66,7 +66,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from _measure import best_seconds, log
+from _measure import gemm_rate, log
 
 N_VIEWS, N_LEDS, TEX = 132, 198, 128
 
@@ -108,15 +108,6 @@ def projection_error(Uk: np.ndarray, U: np.ndarray, s: np.ndarray) -> float:
     Q = np.linalg.qr(np.asarray(Uk, np.float64))[0]
     captured = float(np.sum((Q.T @ U * s) ** 2))
     return float(np.sqrt(max(1.0 - captured / float(np.sum(s**2)), 0.0)))
-
-
-def gemm_rate(m: int, kk: int, n: int, repeats: int = 3) -> float:
-    """GFLOP/s of a float32 ``(m, kk) @ (kk, n)`` numpy GEMM, best of ``repeats``."""
-    rng = np.random.default_rng(0)
-    A = rng.standard_normal((m, kk), dtype=np.float32)
-    B = rng.standard_normal((kk, n), dtype=np.float32)
-    C = np.empty((m, n), np.float32)
-    return 2.0 * m * kk * n / best_seconds(lambda: np.matmul(A, B, out=C), repeats) / 1e9
 
 
 def gemm_rates(n_lv: int, band_cols: int, ls: list[int]) -> dict[str, float]:

@@ -41,7 +41,7 @@ from btfcore.capture.resample import (
     unique_directions,
 )
 from tasks.compute import run_all
-from tasks.staging import commit_staged, staged_target, staging_path, store_attrs, trash_path
+from tasks.staging import commit_staged, output_refusal, staged_target, staging_path, store_attrs, trash_path
 from tasks.stores.btf import (
     RESAMPLED_LV_ORDER,
     SCHEMA_NAME,
@@ -231,26 +231,14 @@ def resample_hash(source: BtfStore, sampling: Sampling) -> str:
     return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:16]
 
 
-def _refusal(path: Path, attrs: dict[str, Any], key: str) -> FileExistsError:
-    """The error for an ``--out`` that holds something other than this resampling."""
-    if not attrs:
-        what = "something that is not a Zarr store"
-    elif "resample_hash" not in attrs:
-        what = f"a Zarr store that is not a resampled BTF store (schema {attrs.get('schema')!r})"
-    else:
-        state = "a complete" if attrs.get("complete") else "an unfinished"
-        what = (f"{state} resampled BTF store of another source or sampling (resample_hash "
-                f"{attrs['resample_hash']!r}, this run {key!r})")
-    return FileExistsError(f"{path} holds {what}; choose another --out or pass --overwrite (the new store is "
-                           f"then built in {staging_path(path)} and replaces {path.name} only once it is complete)")
-
-
 def _resample_target(out: Path, key: str, overwrite: bool) -> tuple[Path, bool]:
     """The store this resampling writes and whether it is the staging store of a replacement
     (:func:`tasks.staging.staged_target`, keyed by ``resample_hash``); an empty folder at ``out``
     counts as nothing there (it is replaced, as with ``overwrite``)."""
     empty = out.is_dir() and not any(out.iterdir())
-    return staged_target(out, "resample_hash", key, overwrite or empty, lambda attrs: _refusal(out, attrs, key))
+    refusal = lambda attrs: output_refusal(out, attrs, "resample_hash", key,  # noqa: E731
+                                           "resampled BTF store", "another source or sampling")
+    return staged_target(out, "resample_hash", key, overwrite or empty, refusal)
 
 
 def create_resampled_store(path: str | os.PathLike, source_path: str | os.PathLike, source: BtfStore,

@@ -87,6 +87,37 @@ def staged_target(out: str | os.PathLike, key_attr: str, key: str, overwrite: bo
     raise refusal(attrs)
 
 
+def output_refusal(out: str | os.PathLike, attrs: dict[str, Any], key_attr: str, key: str, kind: str,
+                   other: str) -> FileExistsError:
+    """The error for an ``--out`` that holds something other than this run (the ``refusal`` of
+    :func:`staged_target` for stages keyed by ``key_attr``).
+
+    Parameters
+    ----------
+    out : path-like
+        The output path.
+    attrs : dict
+        Root attributes of what is at ``out`` (``{}``: no Zarr group).
+    key_attr, key : str
+        The content-key attribute and this run's key.
+    kind : str
+        What this stage writes, e.g. ``"resampled BTF store"``.
+    other : str
+        What a store of another key is of, e.g. ``"another source or sampling"``.
+    """
+    out = Path(out)
+    if not attrs:
+        what = "something that is not a Zarr store"
+    elif key_attr not in attrs:
+        article = "an" if kind[:1] in "aeiou" else "a"
+        what = f"a Zarr store that is not {article} {kind} (schema {attrs.get('schema')!r})"
+    else:
+        state = "a complete" if attrs.get("complete") else "an unfinished"
+        what = f"{state} {kind} of {other} ({key_attr} {attrs[key_attr]!r}, this run {key!r})"
+    return FileExistsError(f"{out} holds {what}; choose another --out or pass --overwrite (the new store is then "
+                           f"built in {staging_path(out)} and replaces {out.name} only once it is complete)")
+
+
 def commit_staged(out: str | os.PathLike, command: str) -> Path:
     """Put the complete staging store of ``out`` (:func:`staging_path`) in place of ``out``.
 

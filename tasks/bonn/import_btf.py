@@ -38,9 +38,9 @@ from tasks.compute import run_all
 from tasks.staging import (
     check_output_location,
     commit_staged,
+    output_refusal,
     refuse_inputs_as_outputs,
     staged_target,
-    staging_path,
     store_attrs,
 )
 from tasks.stores.btf import (
@@ -431,21 +431,6 @@ class ImportPlan:
         return -(-self.height // self.band)
 
 
-def _refusal(out: Path, attrs: dict[str, Any], key: str) -> FileExistsError:
-    """The error for an ``--out`` that holds something other than this import."""
-    if not attrs:
-        what = "something that is not a Zarr store"
-    elif "import_hash" not in attrs:
-        what = f"a Zarr store that is not an imported BTF store (schema {attrs.get('schema')!r})"
-    else:
-        state = "a complete" if attrs.get("complete") else "an unfinished"
-        src = (attrs.get("imported_from") or {}).get("path")
-        what = (f"{state} import of another file or decoder version (import_hash {attrs['import_hash']!r}, "
-                f"from {src}; this run {key!r})")
-    return FileExistsError(f"{out} holds {what}; choose another --out or pass --overwrite (the new store is then "
-                           f"built in {staging_path(out)} and replaces {out.name} only once it is complete)")
-
-
 def _band(fmt: str, reader: Any, n_l: int, h: int, w: int) -> int:
     """Texture rows per chunk: about 4 MiB per view (:func:`tasks.stores.btf.band_rows`); for BDI the
     file's scan lines per chunk, so that every file chunk is decoded once."""
@@ -515,7 +500,9 @@ def check_import(source: str | os.PathLike, out: str | os.PathLike, overwrite: b
     hash_seconds = time.perf_counter() - start
     key = import_hash(sha)
     empty = out.is_dir() and not any(out.iterdir())
-    target, staged = staged_target(out, "import_hash", key, overwrite or empty, lambda a: _refusal(out, a, key))
+    refusal = lambda attrs: output_refusal(out, attrs, "import_hash", key,  # noqa: E731
+                                           "imported BTF store", "another file or decoder version")
+    target, staged = staged_target(out, "import_hash", key, overwrite or empty, refusal)
     signature = hd.signature
     return ImportPlan(source=str(src.resolve()), format=fmt, signature=signature, n_v=int(hd.n_v), n_l=n_l,
                       height=int(hd.height), width=int(hd.width), file_bytes=src.stat().st_size, file_sha256=sha,
