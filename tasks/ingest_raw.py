@@ -5,14 +5,19 @@ list of objects) with one row per file::
 
     file,turntable,camera,illumination,exposure[,exposure_time][,role]
 
-``exposure_time`` (seconds) may be left out or empty: it is then read from the
-file's metadata (LibRaw's shutter speed). ``role`` is ``frame`` (default) or
-``dark``; dark rows need ``camera`` and give the calibration dark frames.
+``exposure_time`` is a shutter time as photographers write it (``1/50``, ``0.5``,
+``2"``, ``2s``; :func:`parse_shutter_time`); left out or empty, it is read from
+the file's metadata (LibRaw's shutter speed). Each bracket is sorted by its
+times, so rows and ``exposure`` numbers may come in any order. ``role`` is
+``frame`` (default) or ``dark``; dark rows need ``camera`` and give the
+calibration dark frames.
 
 Everything is checked before any work starts, and every problem is listed at
-once (:class:`RawImportError`): unreadable or truncated files, missing bracket
-members, duplicate entries, mismatched sizes, Bayer layouts or levels, missing
-or non-increasing exposure times. The dome geometry (LED and camera poses,
+once (:class:`RawImportError`), each check running whatever else failed:
+unreadable or truncated files, images (PNG, JPEG, TIFF) given instead of raw
+files, missing bracket members, duplicate entries, mismatched sizes, Bayer
+layouts or levels, missing exposure times or two frames of a bracket at one
+time. The white level is the file's (:func:`file_white_level`). The dome geometry (LED and camera poses,
 turntable angles, homographies) comes from a :class:`Device` calibration whose
 region of interest is set to the files' size.
 """
@@ -34,6 +39,7 @@ from tasks.stores import CaptureMetadata, CaptureStore, create_capture_store, op
 
 MANIFEST_COLUMNS = ("file", "turntable", "camera", "illumination", "exposure")
 _INDEX_COLUMNS = MANIFEST_COLUMNS[1:]
+_SAME_TIME_RTOL = 1e-6
 
 
 @dataclass(frozen=True)
@@ -48,6 +54,7 @@ class ManifestRow:
     exposure: int
     exposure_time: float | None = None
     role: str = "frame"
+    time_error: bool = False    # the manifest's exposure_time was given but invalid (already reported)
 
 
 @dataclass(frozen=True)
@@ -59,6 +66,7 @@ class RawFrameInfo:
     black_level_per_channel: tuple[int, int, int, int]
     white_level: int
     exposure_time: float | None
+    white_level_source: str = "LibRaw white level (file metadata)"
 
 
 class RawImportError(ValueError):
@@ -67,6 +75,45 @@ class RawImportError(ValueError):
     def __init__(self, problems: list[str]) -> None:
         self.problems = list(problems)
         super().__init__(f"{len(problems)} problem(s) in the raw import:\n" + "\n".join(f"  - {p}" for p in problems))
+
+
+_SHUTTER_FORMS = "seconds as 1/50, 1/8000, 0.5, 2\" or 2s"
+
+
+def parse_shutter_time(value: Any) -> float:
+    """A shutter time as photographers write it, in seconds.
+
+    Accepts numbers and the strings ``1/50``, ``1/8000``, ``0.5``, ``2"``, ``2s``, ``2 s``
+    (also ``1/50s``). Raises ``ValueError`` saying what is wrong (division by zero, not
+    positive, not finite or not a shutter time at all).
+    """
+    if isinstance(value, bool):
+        raise ValueError(f"not a shutter time; write {_SHUTTER_FORMS}")
+    if isinstance(value, (int, float)):
+        seconds = float(value)
+    else:
+        text = str(value).strip()
+        for suffix in ('"', "\u201d", "sec", "s"):
+            if text.lower().endswith(suffix):
+                text = text[: -len(suffix)].strip()
+                break
+        try:
+            if "/" in text:
+                num, den = (float(part) for part in text.split("/"))
+                if den == 0:
+                    raise ValueError(f"division by zero; write {_SHUTTER_FORMS}")
+                seconds = num / den
+            else:
+                seconds = float(text)
+        except ValueError as exc:
+            if "division by zero" in str(exc):
+                raise
+            raise ValueError(f"not a shutter time; write {_SHUTTER_FORMS}") from None
+    if not np.isfinite(seconds):
+        raise ValueError(f"not a finite number of seconds; write {_SHUTTER_FORMS}")
+    if seconds <= 0:
+        raise ValueError(f"a shutter time must be positive, got {seconds:g} s; write {_SHUTTER_FORMS}")
+    return seconds
 
 
 def read_manifest(path: str | os.PathLike) -> tuple[list[ManifestRow], list[str]]:
@@ -95,13 +142,17 @@ def read_manifest(path: str | os.PathLike) -> tuple[list[ManifestRow], list[str]
     rows = []
     for line, record in records:
         where = f"{path}:{line}"
-        if not isinstance(record, dict) or not record.get("file"):
+        if not isinstance(record, dict):
+            problems.append(f"{where}: not an object with keys {', '.join(MANIFEST_COLUMNS)}")
+            continue
+        has_file = bool(record.get("file"))
+        if not has_file:
             problems.append(f"{where}: no 'file' given; every row names one raw file")
-            continue
+        # every check of a row runs, so that one message lists all of the row's problems
         role = str(record.get("role") or "frame").strip()
-        if role not in ("frame", "dark"):
-            problems.append(f"{where}: role {role!r} is neither 'frame' nor 'dark'")
-            continue
+        role_ok = role in ("frame", "dark")
+        if not role_ok:
+            problems.append(f"{where}: column 'role' = {role!r} is neither 'frame' nor 'dark'")
         values: dict[str, Any] = {}
         for column in _INDEX_COLUMNS:
             raw = record.get(column)
@@ -113,19 +164,19 @@ def read_manifest(path: str | os.PathLike) -> tuple[list[ManifestRow], list[str]
                 if values[column] < 0:
                     raise ValueError
             except (TypeError, ValueError):
-                problems.append(f"{where}: {column} = {raw!r} is not a non-negative integer")
+                values.pop(column, None)
+                problems.append(f"{where}: column {column!r} = {raw!r} is not a non-negative integer")
         time_raw = record.get("exposure_time")
-        exposure_time = None
+        exposure_time, time_error = None, False
         if time_raw not in (None, ""):
             try:
-                exposure_time = float(time_raw)
-                if not np.isfinite(exposure_time) or exposure_time <= 0:
-                    raise ValueError
-            except (TypeError, ValueError):
-                problems.append(f"{where}: exposure_time = {time_raw!r} is not a positive number of seconds")
-                continue
-        if len(values) == len(_INDEX_COLUMNS):
-            rows.append(ManifestRow(line, str(record["file"]), exposure_time=exposure_time, role=role, **values))
+                exposure_time = parse_shutter_time(time_raw)
+            except ValueError as exc:
+                time_error = True
+                problems.append(f"{where}: column 'exposure_time' = {time_raw!r}: {exc}")
+        if has_file and role_ok and len(values) == len(_INDEX_COLUMNS):
+            rows.append(ManifestRow(line, str(record["file"]), exposure_time=exposure_time, role=role,
+                                    time_error=time_error, **values))
     return rows, problems
 
 
@@ -134,9 +185,87 @@ def _pattern_name(raw_pattern: np.ndarray, color_desc: bytes) -> str:
     return "".join(desc[int(i)] for i in np.asarray(raw_pattern).ravel())
 
 
+def file_white_level(raw: Any) -> tuple[int, str]:
+    """The level at which an opened rawpy file saturates, and where that value came from.
+
+    LibRaw's ``white_level`` is the file's WhiteLevel (or the format's nominal maximum), but for a
+    DNG with a LinearizationTable LibRaw has already mapped every value through the table
+    (``raw_image`` is linearised), so no pixel can exceed the table's last entry: a real DNG's
+    table ends at 65472 while its white level reads 65535. Order of precedence, lowest wins:
+
+    * per-channel white levels of the file (``camera_white_level_per_channel``), their minimum;
+    * LibRaw's ``white_level``;
+    * the largest value of LibRaw's decoding curve (``tone_curve``) when it is not the identity
+      (a DNG linearisation table or a format's decoding curve).
+
+    Returns
+    -------
+    level : int
+        The white level in raw DN.
+    source : str
+        ``"per-channel white level (file metadata)"``, ``"LibRaw white level (file metadata)"``,
+        ``"linearisation table maximum"`` or ``"default 65535 (the file gives none)"``.
+    """
+    candidates: list[tuple[int, str]] = []
+    per_channel = raw.camera_white_level_per_channel
+    if per_channel is not None and any(int(v) > 0 for v in per_channel):
+        candidates.append((min(int(v) for v in per_channel if int(v) > 0),
+                           "per-channel white level (file metadata)"))
+    if int(raw.white_level) > 0:
+        candidates.append((int(raw.white_level), "LibRaw white level (file metadata)"))
+    curve = np.asarray(raw.tone_curve)
+    if curve.size and not np.array_equal(curve, np.arange(curve.size)):
+        candidates.append((int(curve.max()), "linearisation table maximum"))
+    if not candidates:
+        return 65535, "default 65535 (the file gives none)"
+    level = min(v for v, _ in candidates)
+    return level, next(src for v, src in candidates if v == level)
+
+
+_IMAGE_SIGNATURES = ((b"\x89PNG\r\n\x1a\n", "a PNG image"), (b"\xff\xd8\xff", "a JPEG image"),
+                     (b"II*\x00", "a TIFF image"), (b"MM\x00*", "a TIFF image"))
+
+
+def _tiff_is_dng(head: bytes) -> bool:
+    """Whether the first IFD of a TIFF (its first bytes ``head``) carries the DNGVersion tag (50706)."""
+    order = "<" if head[:2] == b"II" else ">"
+    try:
+        offset = int.from_bytes(head[4:8], "little" if order == "<" else "big")
+        count = int.from_bytes(head[offset:offset + 2], "little" if order == "<" else "big")
+        for k in range(count):
+            entry = head[offset + 2 + 12 * k: offset + 4 + 12 * k]
+            if len(entry) < 2:
+                return False
+            if int.from_bytes(entry, "little" if order == "<" else "big") == 50706:
+                return True
+    except (ValueError, IndexError):
+        return False
+    return False
+
+
+def identify_image_file(path: str | os.PathLike) -> str | None:
+    """``"a PNG image"``, ``"a JPEG image"`` or ``"a TIFF image"`` when the file starts with that
+    format's signature (a TIFF that is a DNG does not count); ``None`` otherwise."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(1 << 16)
+    except OSError:
+        return None
+    for signature, kind in _IMAGE_SIGNATURES:
+        if head.startswith(signature):
+            if kind == "a TIFF image" and _tiff_is_dng(head):
+                return None
+            return kind
+    return None
+
+
+NOT_RAW_ADVICE = ("the raw path needs camera raw files (DNG or a format LibRaw reads); brackets of "
+                  "8- or 16-bit TIFF, PNG or JPEG images are not supported yet — give the camera's raw files")
+
+
 def probe_raw_file(path: str | os.PathLike) -> RawFrameInfo:
     """Read a raw file's layout and levels with LibRaw (the pixel data is decoded too,
-    so that truncated files are caught here)."""
+    so that truncated files are caught here). The white level is :func:`file_white_level`'s."""
     import rawpy
 
     with rawpy.imread(str(path)) as raw:
@@ -146,12 +275,14 @@ def probe_raw_file(path: str | os.PathLike) -> RawFrameInfo:
                              f"{raw.num_colors} colours, pattern shape {np.asarray(raw.raw_pattern).shape})")
         pattern = _pattern_name(raw.raw_pattern, raw.color_desc)
         shutter = float(raw.other.shutter_speed)
+        white, source = file_white_level(raw)
         return RawFrameInfo(
             shape=(int(frame.shape[0]), int(frame.shape[1])),
             bayer_pattern=pattern,
             black_level_per_channel=tuple(int(v) for v in raw.black_level_per_channel),
-            white_level=int(raw.white_level),
+            white_level=white,
             exposure_time=shutter if shutter > 0 else None,
+            white_level_source=source,
         )
 
 
@@ -173,9 +304,40 @@ class RawImportPlan:
     bayer_pattern: str
     black_level_per_channel: tuple[int, int, int, int]
     white_level: int
-    files: dict[tuple[int, int, int, int], Path]    # (t, c, i, e) -> file
+    files: dict[tuple[int, int, int, int], Path]    # (t, c, i, e) -> file, each bracket sorted by time
     exposure_time: np.ndarray                        # (n_turn, n_cam, n_illum, n_exp)
     darks: dict[int, list[tuple[float, Path]]] = field(default_factory=dict)
+    white_level_source: str = "LibRaw white level (file metadata)"
+
+
+def _sort_brackets(manifest: str | os.PathLike, folder: Path,
+                   present: dict[tuple[int, int, int, int], ManifestRow], times: np.ndarray,
+                   problems: list[str]) -> dict[tuple[int, int, int, int], Path]:
+    """Sort every bracket by its exposure times (stable in the manifest's exposure index), in place in
+    ``times`` (n_turn, n_cam, n_illum, n_exp); return the files in that order and append a problem for
+    every bracket with two frames at one time. Runs on every bracket, complete or not."""
+    n_turn, n_cam, n_illum, n_exp = times.shape
+    files: dict[tuple[int, int, int, int], Path] = {}
+    for t, c, i in np.ndindex(n_turn, n_cam, n_illum):
+        members = [(float(times[t, c, i, e]), e, present[(t, c, i, e)]) for e in range(n_exp)
+                   if (t, c, i, e) in present]
+        ordered = sorted(members, key=lambda m: (m[0], m[1]))
+        # times within 1e-6 relative are one time (metadata rationals read as float32 differ by ~1e-8)
+        groups: list[list[tuple[float, int, ManifestRow]]] = []
+        for member in (m for m in ordered if m[0] > 0):
+            if groups and member[0] <= groups[-1][0][0] * (1 + _SAME_TIME_RTOL):
+                groups[-1].append(member)
+            else:
+                groups.append([member])
+        for group in (g for g in groups if len(g) > 1):
+            problems.append(f"{manifest}: bracket (turntable, camera, illumination) = {(t, c, i)} has "
+                            f"{len(group)} frames at the same exposure time {group[0][0]:g} s (lines "
+                            f"{', '.join(str(m[2].line) for m in group)}); every frame of a bracket needs its "
+                            "own time")
+        for e, (seconds, _, row) in enumerate(ordered):
+            times[t, c, i, e] = seconds
+            files[(t, c, i, e)] = folder / row.file
+    return files
 
 
 def plan_raw_import(folder: str | os.PathLike, manifest: str | os.PathLike,
@@ -205,6 +367,11 @@ def plan_raw_import(folder: str | os.PathLike, manifest: str | os.PathLike,
         try:
             infos[path] = probe(path)
         except Exception as exc:  # LibRaw raises many kinds for corrupt, truncated or foreign files
+            kind = identify_image_file(path)
+            if kind is not None:
+                problems.append(f"{where}: {kind}, not a camera raw file (LibRaw cannot read it: "
+                                f"{type(exc).__name__}); {NOT_RAW_ADVICE}")
+                continue
             problems.append(f"{where}: LibRaw cannot read it ({type(exc).__name__}: {exc}); "
                             "the file is corrupt, truncated or not a camera raw file — re-copy it from the camera")
     frames = [r for r in rows if r.role == "frame"]
@@ -239,17 +406,13 @@ def plan_raw_import(folder: str | os.PathLike, manifest: str | os.PathLike,
     for key, row in present.items():
         info = infos.get(folder / row.file)
         t = row.exposure_time if row.exposure_time is not None else (info.exposure_time if info else None)
-        if t is None and info is not None:
+        if row.time_error:          # reported already; the file's time is not silently used instead
+            t = None
+        elif t is None and info is not None:
             problems.append(f"{manifest}:{row.line} ({row.file}): no exposure_time in the manifest and none in "
                             "the file's metadata; add the exposure_time column")
         times[key] = t or 0.0
-    if not missing:
-        for t, c, i in np.ndindex(n_turn, n_cam, n_illum):
-            bracket = times[t, c, i]
-            if (bracket > 0).all() and not (np.diff(bracket) > 0).all():
-                problems.append(f"{manifest}: exposure times of bracket (turntable, camera, illumination) = "
-                                f"{(t, c, i)} are not increasing with the exposure index: {bracket.tolist()} s; "
-                                "number each bracket's exposures from shortest to longest")
+    files = _sort_brackets(manifest, folder, present, times, problems)
     darks: dict[int, list[tuple[float, Path]]] = {}
     for row in rows:
         if row.role != "dark":
@@ -269,8 +432,10 @@ def plan_raw_import(folder: str | os.PathLike, manifest: str | os.PathLike,
         raise RawImportError(problems)
     return RawImportPlan(folder, (n_turn, n_cam, n_illum, n_exp), ref["shape"], ref["bayer_pattern"],
                          ref["black_level_per_channel"], ref["white_level"],
-                         {k: folder / r.file for k, r in present.items()}, times,
-                         {c: sorted(v) for c, v in darks.items()})
+                         files, times,
+                         {c: sorted(v) for c, v in darks.items()},
+                         white_level_source=next(info.white_level_source for _, info in readable
+                                                 if info.white_level == ref["white_level"]))
 
 
 def calibrated_device(device: Device, plan: RawImportPlan) -> Device:
@@ -306,6 +471,7 @@ def import_metadata(plan: RawImportPlan, device: Device, provenance: dict[str, A
         dark_exposure_time=np.asarray(dark_times, dtype=np.float64), n_exp=plan.shape[3],
         roi_shape=plan.frame_shape,
         provenance={"source": "ingest", "black_level_per_channel": list(black),
+                    "white_level_source": plan.white_level_source,
                     "dark_frames": "files" if plan.darks else "synthesised from the black level (no dark rows)",
                     **provenance},
     )

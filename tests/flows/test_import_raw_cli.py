@@ -21,12 +21,16 @@ def test_import_raw_lists_problems_then_imports(tmp_path, write_dng):
             name = f"l{i}_e{e}.dng"
             write_dng(tmp_path / name, rng.integers(64, 4000, (72, 80), dtype=np.uint16), "RGGB", 0.01 * 8**e)
             lines.append(f"{name},0,0,{i},{e}")
-    (tmp_path / "manifest.csv").write_text("\n".join(lines + ["ghost.dng,0,0,1,1"]) + "\n")
+    import cv2
+
+    assert cv2.imwrite(str(tmp_path / "photo.png"), np.zeros((8, 8, 3), np.uint8))   # an image, not raw
+    (tmp_path / "manifest.csv").write_text("\n".join(lines + ["ghost.dng,0,0,1,1", "photo.png,0,0,0,0"]) + "\n")
     cmd = [sys.executable, "-m", "flows.cli", "import-raw", str(tmp_path), "--manifest",
            str(tmp_path / "manifest.csv"), "--device", "tiny", "--out", str(tmp_path / "c.zarr")]
     bad = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300, env=dict(os.environ))
     assert bad.returncode == 2
     assert "ghost.dng): file not found" in bad.stderr and "duplicate entry" in bad.stderr
+    assert "photo.png): a PNG image, not a camera raw file" in bad.stderr and "Traceback" not in bad.stderr
     assert not (tmp_path / "c.zarr").exists()
     (tmp_path / "manifest.csv").write_text("\n".join(lines) + "\n")
     good = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300, env=dict(os.environ))

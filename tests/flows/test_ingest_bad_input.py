@@ -287,10 +287,11 @@ def _drop_member(folder, _write_dng):
     return ["--device", "tiny"]
 
 
-def _decreasing_times(folder, _write_dng):
+def _equal_times(folder, _write_dng):
+    # brackets may come in any order (sorted by time), but two frames of one bracket at one time cannot be
     manifest = folder / "manifest.csv"
     lines = manifest.read_text().splitlines()
-    rows = [lines[0] + ",exposure_time"] + [row + (",0.5" if row.startswith("l0_e0") else ",") for row in lines[1:]]
+    rows = [lines[0] + ",exposure_time"] + [row + (",0.08" if row.startswith("l0_e0") else ",") for row in lines[1:]]
     manifest.write_text("\n".join(rows) + "\n")
     return ["--device", "tiny"]
 
@@ -323,8 +324,8 @@ REFUSED_IMPORTS = {
                                                   "and none in the file's metadata", "add the exposure_time column"]),
     "missing bracket member": (_drop_member, ["(turntable, camera, illumination, exposure) = (0, 0, 1, 1) is "
                                               "missing", "add its file"]),
-    "non-monotonic exposure times": (_decreasing_times, ["bracket (turntable, camera, illumination) = (0, 0, 0) are "
-                                                         "not increasing", "from shortest to longest"]),
+    "equal exposure times": (_equal_times, ["bracket (turntable, camera, illumination) = (0, 0, 0) has 2 frames at "
+                                            "the same exposure time 0.08 s", "needs its own time"]),
     "NaN in the LED calibration": (_calibration(_nan_gain), ["cal.json: not a valid dome calibration",
                                                              "led_rgb_gain contains NaN or Inf at [1, 2]"]),
     "Inf in the camera calibration": (_calibration(_inf_intrinsics), ["cal.json: not a valid dome calibration",
