@@ -41,6 +41,7 @@ from __future__ import annotations
 from typing import Any, Literal, NamedTuple
 
 import numpy as np
+from scipy.linalg import cho_factor, cho_solve
 
 __all__ = [
     "LDR_SIZE",
@@ -499,23 +500,53 @@ def _channels_last(z: np.ndarray, channel_axis: int | None) -> np.ndarray:
     return z.reshape(z.shape[0], -1, z.shape[-1])
 
 
-def _debevec_samples(zc: np.ndarray, n_samples: int, rng: np.random.Generator) -> np.ndarray:
-    """Pixel indices stratified over the scene's brightness (sum of codes over the bracket)."""
-    n_pix = zc.shape[1]
+#: :func:`_debevec_samples` first looks for one pixel per brightness bin among this many random pixels
+#: per sample (a bin missed there, i.e. a rare brightness, is then searched among all pixels).
+_SUBSET_PER_SAMPLE: int = 8
+
+
+def _debevec_samples(level: np.ndarray, max_level: int, n_samples: int, rng: np.random.Generator) -> np.ndarray:
+    """Pixel indices stratified over the scene's brightness ``level`` (codes summed over the bracket).
+
+    ``n_samples`` equal-width bins of ``level`` (or one per level when there
+    are fewer levels); one pixel drawn uniformly from every non-empty bin,
+    the rest at random. The bins are found in a random subset of the
+    pixels first (the first hit of a bin in a random order is a uniform draw
+    from it); only the bins it misses, the rare brightnesses, are looked up
+    among all pixels. Cost: a few passes over ``level``, no sort of all pixels.
+    """
+    n_pix = level.size
     if n_pix <= n_samples:
         return np.arange(n_pix)
-    level = zc.sum(axis=0, dtype=np.int64)                                       # monotone in radiance
-    lo, hi = int(level.min()), int(level.max())
-    bins = np.minimum(((level - lo) * n_samples) // max(hi - lo + 1, 1), n_samples - 1)
-    order = rng.permutation(n_pix)                                               # random pixel per bin
-    first = np.full(n_samples, -1, dtype=np.int64)
-    b = bins[order]
-    uniq, pos = np.unique(b, return_index=True)                                  # first hit after shuffling
-    first[uniq] = order[pos]
-    chosen = first[first >= 0]
-    if chosen.size < n_samples:                                                  # fill the rest at random
-        rest = np.setdiff1d(order[: n_samples * 4], chosen, assume_unique=False)
-        chosen = np.concatenate([chosen, rest[: n_samples - chosen.size]])
+    if max_level + 1 <= n_samples:                                               # one bin per level
+        bins, n_bins = level, max_level + 1
+    else:
+        lo, hi = int(level.min()), int(level.max())
+        span = hi - lo + 1
+        if span <= n_samples:
+            bins, n_bins = level, hi + 1                                         # (bins below lo stay empty)
+        else:
+            bins, n_bins = ((level.astype(np.int64) - lo) * n_samples) // span, n_samples
+    sub = rng.integers(0, n_pix, size=_SUBSET_PER_SAMPLE * n_samples)           # i.i.d. uniform pixels
+    first = np.full(n_bins, sub.size, dtype=np.intp)
+    np.minimum.at(first, bins[sub], np.arange(sub.size))                         # first hit of every bin
+    hit = np.flatnonzero(first < sub.size)
+    chosen = [sub[first[hit]]]
+    missing = np.ones(n_bins, dtype=bool)
+    missing[hit] = False
+    cand = np.flatnonzero(missing.take(bins))                                    # pixels of the bins not hit
+    if cand.size:                                                                # rare bins: among all pixels
+        cb = bins[cand]
+        order = np.argsort(cb, kind="stable")                                    # grouped by bin
+        cnt = np.bincount(cb, minlength=n_bins)
+        cnt = cnt[cnt > 0]
+        pick = np.cumsum(cnt) - cnt + (rng.random(cnt.size) * cnt).astype(np.int64)
+        chosen.append(cand[order[pick]])
+    chosen = np.concatenate(chosen)
+    need = n_samples - chosen.size
+    if need > 0:                                                                 # fill the rest at random
+        extra = rng.choice(n_pix, size=min(n_pix, need + chosen.size), replace=False)
+        chosen = np.concatenate([chosen, extra[~np.isin(extra, chosen, kind="table")][:need]])
     return np.sort(chosen)
 
 
@@ -542,11 +573,10 @@ def _debevec_solve(zs: np.ndarray, log_t: np.ndarray, w: np.ndarray, lam: float)
     h = np.diag(np.bincount(zs.ravel(), weights=a.ravel(), minlength=size).astype(np.float64))  # sum a g^2
     b = np.bincount(zs.ravel(), weights=(a * log_t).ravel(), minlength=size).astype(np.float64)
     inv = 1.0 / big_a
-    for j in range(p):                                                           # - (sum_j a_ij g_ij)^2 / A_i
-        for k in range(p):
-            pair = zs[:, j] * size + zs[:, k]
-            h -= np.bincount(pair, weights=a[:, j] * a[:, k] * inv, minlength=size * size).reshape(size, size)
-        b -= np.bincount(zs[:, j], weights=a[:, j] * c * inv, minlength=size)
+    pair = (zs[:, :, None] * size + zs[:, None, :]).ravel()                      # every (j, k) code pair of a pixel
+    cross = (a[:, :, None] * a[:, None, :] * inv[:, None, None]).ravel()
+    h -= np.bincount(pair, weights=cross, minlength=size * size).reshape(size, size)  # - (sum_j a_ij g_ij)^2 / A_i
+    b -= np.bincount(zs.ravel(), weights=(a * (c * inv)[:, None]).ravel(), minlength=size)
     zz = np.arange(1, size - 1)
     d = np.zeros((size - 2, size))
     d[np.arange(size - 2), zz - 1] = 1.0                                         # eq. g'' = g(z-1) - 2 g(z) + g(z+1)
@@ -556,7 +586,11 @@ def _debevec_solve(zs: np.ndarray, log_t: np.ndarray, w: np.ndarray, lam: float)
     h += d.T @ d
     free = np.arange(size) != size // 2                                          # eq. g(128) = 0
     g = np.zeros(size)
-    g[free] = np.linalg.lstsq(h[np.ix_(free, free)], b[free], rcond=None)[0]
+    hf, bf = h[np.ix_(free, free)], b[free]
+    try:                                                                         # positive definite: Cholesky
+        g[free] = cho_solve(cho_factor(hf, check_finite=False), bf, check_finite=False)
+    except np.linalg.LinAlgError:                                                # codes the data and smoothness miss
+        g[free] = np.linalg.lstsq(hf, bf, rcond=None)[0]
     return g
 
 
@@ -635,8 +669,16 @@ def response_debevec(images: np.ndarray, exposure_time: Any, *, n_samples: int |
     w = weights_debevec()
     log_t = np.log(t)
     out = np.empty((LDR_SIZE, n_ch))
+    level = None                                                                 # (n_pix, C) summed codes
+    if n_samples is not None:
+        level = zc[0].astype(np.int32 if n_exp > 257 else np.uint16)
+        for j in range(1, n_exp):
+            level += zc[j]
     for c in range(n_ch):
-        zs = zc[:, :, c] if n_samples is None else zc[:, _debevec_samples(zc[:, :, c], int(n_samples), rng), c]
+        if level is None:
+            zs = zc[:, :, c]
+        else:
+            zs = zc[:, _debevec_samples(level[:, c], (LDR_SIZE - 1) * n_exp, int(n_samples), rng), c]
         out[:, c] = _debevec_solve(zs.T, log_t, w, lam)
     return out[:, 0] if channel_axis is None else out
 
@@ -679,6 +721,8 @@ def response_robertson(images: np.ndarray, exposure_time: Any, *, max_iter: int 
     with :math:`\\Omega_m = \\{(i, j): Z_{ij} = m\\}` over all pixels (those
     with a zero weight sum are left out of the update) and Robertson's
     weights (:func:`weights_robertson`); then :math:`I \\leftarrow I / I(128)`.
+    Each pass gathers :math:`w t_j I` per exposure from a 256-entry table and
+    accumulates :math:`t_j \\hat E_i` per code with ``bincount``.
     """
     z, t = _check_ldr(images, exposure_time)
     if int(max_iter) < 1:
@@ -687,25 +731,28 @@ def response_robertson(images: np.ndarray, exposure_time: Any, *, max_iter: int 
     zc = _channels_last(z, channel_axis)                                         # (P, n_pix, C)
     n_exp, n_pix, n_ch = zc.shape
     w = weights_robertson()
-    tt = t.reshape(-1, 1)
     codes = np.arange(LDR_SIZE, dtype=np.float64)
     out = np.empty((LDR_SIZE, n_ch))
     for c in range(n_ch):
-        zi = zc[:, :, c].astype(np.intp)                                         # (P, n_pix)
-        wz = w[zi]
-        den = np.sum(wz * tt * tt, axis=0)                                       # eq. sum w t^2
+        zi = zc[:, :, c]
+        den = np.zeros(n_pix)
+        for j in range(n_exp):
+            den += (w * (t[j] * t[j])).take(zi[j])                               # eq. sum w t^2
         ok = den > 0
-        flat = zi[:, ok].ravel()
-        count = np.bincount(flat, minlength=LDR_SIZE).astype(np.float64)
+        zj = [zi[j, ok].astype(np.intp) for j in range(n_exp)]                   # samples of pixels with weight
+        inv_den = 1.0 / den[ok]
+        count = sum(np.bincount(q, minlength=LDR_SIZE) for q in zj).astype(np.float64)
         seen = count > 0
         resp = codes / (LDR_SIZE // 2)
         if not seen.any():                                                       # nothing well exposed
             out[:, c] = resp
             continue
         for _ in range(int(max_iter)):
-            e = np.sum(wz * tt * resp[zi], axis=0)[ok] / den[ok]                 # eq. E_i
-            te = (tt * e).ravel()                                                # t_j E_i, same order as flat
-            new = np.bincount(flat, weights=te, minlength=LDR_SIZE)
+            num = np.zeros(inv_den.size)
+            for j in range(n_exp):
+                num += (w * t[j] * resp).take(zj[j])                             # eq. sum w t I (a table per exposure)
+            e = num * inv_den                                                    # eq. E_i
+            new = sum(t[j] * np.bincount(zj[j], weights=e, minlength=LDR_SIZE) for j in range(n_exp))
             new[seen] /= count[seen]                                             # eq. I(m) = mean t_j E_i
             if not seen.all():
                 new[~seen] = np.interp(codes[~seen], codes[seen], new[seen])
@@ -721,7 +768,8 @@ def response_robertson(images: np.ndarray, exposure_time: Any, *, max_iter: int 
 
 
 def merge_response(images: np.ndarray, exposure_time: Any, response: np.ndarray | None = None, *,
-                   method: Literal["debevec", "robertson"] = "debevec", return_valid: bool = False,
+                   method: Literal["debevec", "robertson"] = "debevec",
+                   channel_weights: Literal["each", "mean"] = "each", return_valid: bool = False,
                    dtype: type | np.dtype = np.float32) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """HDR merge of 8-bit images through a calibrated inverse camera response.
 
@@ -738,10 +786,16 @@ def merge_response(images: np.ndarray, exposure_time: Any, response: np.ndarray 
         ``np.exp(response_debevec(...))``. ``None``: linear, :math:`I(z) = z / 128`.
     method : {'debevec', 'robertson'}
         Weights and averaging (see Notes).
+    channel_weights : {'each', 'mean'}
+        ``'each'``: every colour channel weighted by its own code (the
+        papers). ``'mean'``: the weights averaged over the channels of the
+        pixel, as OpenCV's ``MergeDebevec`` does (a saturated channel then
+        keeps the weight of the others); needs a ``(256, C)`` response or
+        ``C = 1``. For comparisons; ``'each'`` is the better estimate.
     return_valid : bool
         Also return the valid mask.
     dtype : numpy dtype
-        Floating type of the output.
+        Floating type of the output (and of the accumulation).
 
     Returns
     -------
@@ -768,13 +822,29 @@ def merge_response(images: np.ndarray, exposure_time: Any, response: np.ndarray 
     .. math::
         \\hat E = \\frac{\\sum_j w(Z_j) t_j I(Z_j)}{\\sum_j w(Z_j) t_j^2}.
 
+    Both are sums over the exposures of a per-code table: exposure
+    :math:`j` adds :math:`w(z) a_j(z)` to the numerator and :math:`w(z) b_j`
+    to the denominator (Debevec: :math:`a_j = \\ln I - \\ln t_j, b_j = 1`;
+    Robertson: :math:`a_j = t_j I, b_j = t_j^2`). The two products are
+    tabulated per code value and channel once (256 x C entries per
+    exposure) and gathered together as one complex number per sample, in
+    blocks of pixels that stay in the CPU cache: no per-pixel arithmetic but
+    the sums, the division and (Debevec) the exponential.
+
     Zero responses are raised to the smallest positive value before the log.
-    Unlike OpenCV's ``MergeDebevec``, the weights are per channel (not the
-    channel average) and are zero at codes 0 and 255.
+    The hat :math:`w(z) = z` / :math:`255 - z` is OpenCV's (version 4.x and
+    later); with ``channel_weights='mean'`` the Debevec merge equals
+    OpenCV's ``MergeDebevec`` to float32 rounding where a weight is
+    non-zero (``docs/hdr.md``).
     """
     if method not in ("debevec", "robertson"):
         raise ValueError(f"method must be 'debevec' or 'robertson', got {method!r}")
+    if channel_weights not in ("each", "mean"):
+        raise ValueError(f"channel_weights must be 'each' or 'mean', got {channel_weights!r}")
     z, t = _check_ldr(images, exposure_time)
+    dtype = np.dtype(dtype)
+    if dtype.kind != "f":
+        raise ValueError(f"dtype must be a floating type, got {dtype}")
     if response is None:
         resp = np.arange(LDR_SIZE, dtype=np.float64) / (LDR_SIZE // 2)
     else:
@@ -787,33 +857,86 @@ def merge_response(images: np.ndarray, exposure_time: Any, response: np.ndarray 
         if resp.ndim == 2 and (z.ndim < 3 or z.shape[-1] != resp.shape[1]):
             raise ValueError(f"a (256, {resp.shape[1]}) response needs images (n_exp, ..., {resp.shape[1]}), "
                              f"got shape {z.shape}")
-    if resp.ndim == 2:
-        lut = resp.T                                                             # (C, 256)
-        look = lambda table: table[np.arange(table.shape[0]), z]                 # noqa: E731
-    else:
-        look = lambda table: table[z]                                            # noqa: E731
-        lut = resp
-    tk = t.reshape((-1,) + (1,) * (z.ndim - 1))
+    if resp.ndim == 1:
+        resp = resp[:, None]
+    n_ch = resp.shape[1]
+    if channel_weights == "mean" and n_ch == 1 and z.ndim >= 3 and z.shape[-1] > 1:
+        raise ValueError("channel_weights='mean' needs a (256, C) response for images with C channels last; "
+                         "repeat the (256,) response C times")
+    tab = resp.T                                                                 # (C, 256)
     if method == "debevec":
-        w = weights_debevec()[z]
-        pos = lut[lut > 0]
-        log_lut = np.log(np.maximum(lut, pos.min() if pos.size else 1.0))
-        log_i = look(log_lut)
-        wsum = w.sum(axis=0)
-        valid = wsum > 0
-        num = np.sum(w * (log_i - np.log(tk)), axis=0)                           # eq. sum w (ln I - ln t)
-        fallback = np.where(z[0] > (LDR_SIZE - 1) / 2, log_i[0] - np.log(t[0]), log_i[-1] - np.log(t[-1]))
-        rad = np.exp(np.where(valid, num / np.where(valid, wsum, 1.0), fallback))  # eq. (6) of [1]
+        w = weights_debevec()
+        pos = tab[tab > 0]
+        log_i = np.log(np.maximum(tab, pos.min() if pos.size else 1.0))
+        a = log_i[None] - np.log(t)[:, None, None]                               # eq. a_j = ln I - ln t_j
+        b = np.ones_like(t)
+        fallback = np.exp(a)                                                     # I(z) / t_j
     else:
-        w = weights_robertson()[z]
-        i_z = look(lut)
-        den = np.sum(w * tk * tk, axis=0)                                        # eq. sum w t^2
-        valid = den > 0
-        num = np.sum(w * tk * i_z, axis=0)                                       # eq. sum w t I
-        fallback = np.where(z[0] > (LDR_SIZE - 1) / 2, i_z[0] / t[0], i_z[-1] / t[-1])
-        rad = np.where(valid, num / np.where(valid, den, 1.0), fallback)         # eq. (9) of [2]
-    rad = rad.astype(dtype, copy=False)
+        w = weights_robertson()
+        a = t[:, None, None] * tab[None]                                         # eq. a_j = t_j I
+        b = t * t                                                                # eq. b_j = t_j^2
+        fallback = tab[None] / t[:, None, None]
+    rad, valid = _merge_tables(z, w, a.reshape(t.size, -1), b, fallback.reshape(t.size, -1), n_ch,
+                               method == "debevec", channel_weights == "mean", dtype)
     return (rad, valid) if return_valid else rad
+
+
+#: Pixel values (exposures x pixels x channels) merged at once by :func:`merge_response`.
+_BLOCK_LDR: int = 1 << 15
+
+
+def _merge_tables(z: np.ndarray, w: np.ndarray, a: np.ndarray, b: np.ndarray, fallback: np.ndarray, n_ch: int,
+                  log_domain: bool, mean_weights: bool, dtype: np.dtype) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`merge_response`'s sums through per-code tables, in blocks.
+
+    ``a`` is (P, C * 256) (channel-major), ``b`` (P,), ``fallback`` (P, C * 256)
+    the value a single sample gives; ``w`` (256,) the weights.
+    """
+    n_exp = z.shape[0]
+    zf = z.reshape(n_exp, -1)
+    n = zf.shape[1]
+    cdt = np.complex64 if dtype.itemsize <= 4 else np.complex128
+    wt = np.tile(w, n_ch)                                                        # (C * 256,)
+    if mean_weights:
+        a_t = a.astype(dtype)
+        w_t = wt.astype(dtype)
+    else:
+        tables = (wt * a + 1j * (wt[None] * b[:, None])).astype(cdt)             # eq. w a_j + i w b_j
+    offs = np.arange(n_ch, dtype=np.intp) * LDR_SIZE if n_ch > 1 else None
+    rad = np.empty(n, dtype=dtype)
+    valid = np.empty(n, dtype=bool)
+    step = max(n_ch, (_BLOCK_LDR // n_exp) // n_ch * n_ch)
+    for lo in range(0, n, step):
+        hi = min(lo + step, n)
+        zb = zf[:, lo:hi]
+        idx = zb if offs is None else (zb.reshape(n_exp, -1, n_ch) + offs).reshape(n_exp, -1)
+        if mean_weights:
+            num = np.zeros(hi - lo, dtype=dtype)
+            den = np.zeros(hi - lo, dtype=dtype)
+            for j in range(n_exp):
+                om = w_t.take(idx[j]).reshape(-1, n_ch).mean(axis=1, keepdims=True)  # channel-mean weight
+                om = np.broadcast_to(om, (om.shape[0], n_ch)).reshape(-1)
+                num += om * a_t[j].take(idx[j])
+                den += om * dtype.type(b[j])
+        else:
+            acc = tables[0].take(idx[0])
+            for j in range(1, n_exp):
+                acc += tables[j].take(idx[j])                                    # eq. sum_j w a_j, sum_j w b_j
+            num, den = acc.real, acc.imag
+        ok = den > 0
+        out = rad[lo:hi]
+        all_ok = bool(ok.all())
+        np.divide(num, den, out=out, where=ok)
+        if not all_ok:
+            out[~ok] = 0                                                         # set below (no exp of garbage)
+        if log_domain:
+            np.exp(out, out=out)
+        valid[lo:hi] = ok
+        if not all_ok:
+            bad = np.flatnonzero(~ok)
+            first = zb[0, bad] > (LDR_SIZE - 1) / 2                              # saturated: shortest exposure
+            out[bad] = np.where(first, fallback[0].take(idx[0, bad]), fallback[-1].take(idx[-1, bad]))
+    return rad.reshape(z.shape[1:]), valid.reshape(z.shape[1:])
 
 
 # --------------------------------------------------------------------------- dispatcher
