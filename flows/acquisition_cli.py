@@ -11,7 +11,9 @@ a Dask cluster nor Prefect. Errors and exit codes are those of :mod:`flows.cli`.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
+import math
 import sys
 import time
 from pathlib import Path
@@ -19,6 +21,11 @@ from typing import Any
 
 
 PLAN_STRATEGIES: tuple[str, ...] = ("full", "sparse", "multiplexed", "sparse-multiplexed", "bootstrap")
+
+#: What to do when a multiplexed plan's predicted gain is below 1 (docs/acquisition-planning.md).
+_MUX_ADVICE = ("capture single-light (--strategy full or sparse), give the multiplexed patterns longer exposures "
+               "(--exposure-exponent below 1, up to the full well), or use fewer LEDs per pattern "
+               "(--strategy bootstrap: smaller S-matrices)")
 
 SAMPLE_HELP = """\
 Choose which light/view pairs a sparse measurement takes, for a class basis of
@@ -45,7 +52,10 @@ pairs of --samples, all cameras), multiplexed (S-matrix patterns), sparse-
 multiplexed (at each turntable position the sampled LEDs multiplexed with
 their own S-matrix), bootstrap (VMV §4.2: the quadrant opposite the cameras
 single-light, the others with smaller S-matrices). --material picks the
-shutter times of VMV Table 2 (cloth, leather, wood).
+shutter times of VMV Table 2 (cloth, leather, wood). A plan with multiplexed
+shots also reports its predicted multiplexing gain (SNR of the demultiplexed
+result over single-light capture under the device's photon + read noise, at
+the plan's shutter times) and warns when it is below 1: multiplexing loses.
 """
 
 RENDER_HELP = """\
@@ -105,6 +115,12 @@ def add_plan_arguments(p: argparse.ArgumentParser) -> None:
                    help="`btf sample --device DEVICE` output; needed by sparse and sparse-multiplexed")
     p.add_argument("--material", default=None, choices=tuple(VMV_TABLE2),
                    help="shutter times of VMV Table 2 for this material [default: the ExposureModel default]")
+    p.add_argument("--exposure-exponent", type=float, default=None, metavar="G",
+                   help="a pattern with m LEDs on gets the single-light bracket divided by m**G (1: as bright as "
+                        "m LEDs, the same electrons; 0: the single-light shutter times) [default: 1]")
+    p.add_argument("--signal-fraction", type=float, default=0.8, metavar="F",
+                   help="texel signal for the predicted multiplexing gain: F x the full well under one LED at the "
+                        "longest single-light shutter time, in (0, 1] [default: 0.8]")
     p.add_argument("--out", required=True, metavar="PLAN_DIR", help="output folder (plan.json, plan.csv)")
 
 
@@ -202,6 +218,15 @@ def _plan(args: argparse.Namespace) -> dict[str, Any]:
 
     device = get_device(args.device)
     exposure = thesis_exposure(args.material) if args.material else None
+    if getattr(args, "exposure_exponent", None) is not None and not (
+            math.isfinite(args.exposure_exponent) and args.exposure_exponent >= 0):
+        raise ValueError(f"--exposure-exponent {args.exposure_exponent:g} must be finite and >= 0")
+    if getattr(args, "exposure_exponent", None) is not None:
+        exposure = dataclasses.replace(exposure or P.ExposureModel(), exponent=float(args.exposure_exponent))
+    fraction = float(getattr(args, "signal_fraction", 0.8))
+    if not 0 < fraction <= 1:
+        raise ValueError(f"--signal-fraction {fraction:g} must lie in (0, 1]: the texel's signal under one LED as a "
+                         "fraction of the full well")
     if args.samples and args.strategy not in ("sparse", "sparse-multiplexed"):
         raise ValueError(f"--samples applies to the sparse strategies, not {args.strategy!r}; drop it")
     if args.strategy == "full":
@@ -216,7 +241,11 @@ def _plan(args: argparse.Namespace) -> dict[str, Any]:
         plan = P.bootstrapping_plan(device, exposure)
     out = Path(args.out)
     params = TimeModelParams()
-    write_plan(plan, out / "plan.json", out / "plan.csv", device=device, time_params=params)
+    mux = P.multiplexing_gain(plan, full_well_e=device.sensor.full_well_e,
+                              read_noise_e=device.sensor.read_noise_e, signal_fraction=fraction)
+    if mux is not None and mux["loses"]:
+        mux["advice"] = _MUX_ADVICE
+    write_plan(plan, out / "plan.json", out / "plan.csv", device=device, time_params=params, multiplexing=mux)
     t = predict_time(plan, params)
     breakdown = {name: round(float(v), 1) for name, v in t.to_dict().items()
                  if name.endswith("_s") and name != "total_s"}
@@ -225,12 +254,20 @@ def _plan(args: argparse.Namespace) -> dict[str, Any]:
               f"predicted {t.total_h:.2f} h ({t.total_s / 60:.1f} min)", file=sys.stderr)
         for name, v in breakdown.items():
             print(f"  {name:22s} {v:12.1f} s", file=sys.stderr)
+        if mux is not None:
+            print(f"  predicted multiplexing gain {mux['gain']:.3f} (SNR over single-light capture, photon + "
+                  f"read noise, texel at {mux['signal_fraction']:g} of the full well)", file=sys.stderr)
+    if mux is not None and mux["loses"]:
+        print(f"btf plan: WARNING: multiplexing loses against single-light capture: predicted gain "
+              f"{mux['gain']:.3f} < 1 on {device.name} at this exposure; {_MUX_ADVICE}", file=sys.stderr)
+    extra = {} if mux is None else {"multiplexing_gain": round(mux["gain"], 4),
+                                    "multiplexing_loses": mux["loses"], "multiplexing": mux}
     return {"command": "plan", "device": device.name, "strategy": plan.strategy,
             "material": args.material, "out": str(out.resolve()),
             "plan_json": str((out / "plan.json").resolve()), "plan_csv": str((out / "plan.csv").resolve()),
             "shots": t.n_shots, "exposures": t.n_exposures, "images": plan.n_images,
             "predicted_s": round(t.total_s, 1), "predicted_h": round(t.total_h, 3), "breakdown_s": breakdown,
-            "time_model": params.to_dict()}
+            "time_model": params.to_dict(), **extra}
 
 
 # --------------------------------------------------------------------------- render

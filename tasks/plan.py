@@ -57,7 +57,8 @@ def plan_to_csv_text(plan: CapturePlan) -> str:
 
 
 def write_plan(plan: CapturePlan, path_json: str | Path, path_csv: str | Path | None = None, *,
-               device: Device | None = None, time_params: TimeModelParams | None = None) -> dict[str, Any]:
+               device: Device | None = None, time_params: TimeModelParams | None = None,
+               multiplexing: dict[str, Any] | None = None) -> dict[str, Any]:
     """Write a plan as JSON (and CSV).
 
     Parameters
@@ -74,6 +75,11 @@ def write_plan(plan: CapturePlan, path_json: str | Path, path_csv: str | Path | 
         Parameters of the time prediction (default
         :class:`~btfcore.acquisition.time_model.TimeModelParams` (), whose overheads are
         the fit on VMV Table 2's multiplexed times).
+    multiplexing : dict, optional
+        The predicted multiplexing gain
+        (:func:`btfcore.acquisition.plan.multiplexing_gain`); written as
+        ``multiplexing_gain`` and ``multiplexing_loses`` (gain below 1) with the
+        details under ``multiplexing``.
 
     Returns
     -------
@@ -90,6 +96,10 @@ def write_plan(plan: CapturePlan, path_json: str | Path, path_csv: str | Path | 
     params = time_params or TimeModelParams()
     doc = plan.to_dict()
     doc["predicted_time"] = {**predict_time(plan, params).to_dict(), "model": params.to_dict()}
+    if multiplexing is not None:
+        doc["multiplexing_gain"] = float(multiplexing["gain"])
+        doc["multiplexing_loses"] = bool(multiplexing["loses"])
+        doc["multiplexing"] = dict(multiplexing)
     path_json = Path(path_json)
     path_json.parent.mkdir(parents=True, exist_ok=True)
     tmp = path_json.with_name(path_json.name + ".tmp")

@@ -31,7 +31,9 @@ a rule for a pattern with ``m`` LEDs on (by default the bracket scaled by
 ``1 / m``; measured brackets can be given per ``m``).
 
 The plan's JSON/CSV form is written by :mod:`tasks.plan`; the predicted
-acquisition time comes from :mod:`btfcore.acquisition.time_model`.
+acquisition time comes from :mod:`btfcore.acquisition.time_model`, and
+:func:`multiplexing_gain` predicts whether the plan's multiplexed shots beat
+single-light capture under the sensor's photon + read noise.
 
 References
 ----------
@@ -51,6 +53,7 @@ from typing import Any, Iterable, Mapping, Sequence
 import numpy as np
 
 from btfcore.acquisition.hadamard import multiplexing_patterns
+from btfcore.capture.demultiplex import demultiplex_operator
 from btfcore.dome import Device
 
 __all__ = [
@@ -63,6 +66,7 @@ __all__ = [
     "bootstrapping_plan",
     "full_single_light_plan",
     "multiplexed_plan",
+    "multiplexing_gain",
     "sparse_multiplexed_plan",
     "sparse_plan",
     "validate_plan",
@@ -748,3 +752,138 @@ def bootstrapping_plan(device: Device, exposure: ExposureModel | None = None, *,
     params = {"exposure": exposure.to_dict(), "specular_half_width_deg": float(specular_half_width_deg),
               "sector_sizes": np.bincount(sector, minlength=4).tolist(), "s_matrix_orders": orders}
     return _plan(device, "bootstrapping", shots, params)
+
+
+# --------------------------------------------------------------------------- predicted multiplexing gain
+
+
+def _exposure_gain_of(m: int, shutter_ms: Sequence[float], x_e: float, t_ref: float,
+                      full_well_e: float) -> tuple[float, bool]:
+    """``(t / t_ref, saturated)`` of the longest step of a bracket that keeps ``m`` LEDs of ``x_e``
+    electrons each (at ``t_ref``) below the full well; the shortest step when every step saturates."""
+    fits = [t for t in shutter_ms if m * x_e * t / t_ref <= full_well_e]
+    if fits:
+        return max(fits) / t_ref, False
+    return min(shutter_ms) / t_ref, True
+
+
+def multiplexing_gain(plan: CapturePlan, *, full_well_e: float, read_noise_e: float,
+                      signal_fraction: float = 0.8,
+                      single_ms: Sequence[float] | None = None) -> dict[str, Any] | None:
+    """Predicted SNR of a plan's multiplexed shots over single-light capture, photon + read noise.
+
+    Parameters
+    ----------
+    plan : CapturePlan
+    full_well_e : float
+        Full-well capacity of the device's sensor, electrons (> 0).
+    read_noise_e : float
+        Read-noise standard deviation, electrons (>= 0).
+    signal_fraction : float
+        Signal of the texel considered: under one LED at the longest
+        single-light shutter time it collects ``signal_fraction * full_well_e``
+        electrons, in (0, 1]. The default 0.8 is the auto exposure of
+        :class:`btfcore.acquisition.noise.SensorNoise` (``fill``); darker
+        texels (small fractions, read noise dominant) favour multiplexing.
+    single_ms : sequence of float, optional
+        The single-light bracket, ms; default the plan's exposure model
+        (``plan.parameters["exposure"]["single_ms"]``).
+
+    Returns
+    -------
+    report : dict or None
+        None when no shot has more than one LED on. Otherwise plain JSON:
+        ``gain`` (r.m.s. noise of single-light capture over that of the
+        demultiplexed result, both in single-light radiance units; > 1 means
+        multiplexing wins), ``loses`` (``gain < 1``), ``groups`` (gain per shot
+        group), ``saturated_patterns`` (patterns of which every bracket step
+        saturates at this signal), and the model inputs.
+
+    Raises
+    ------
+    ValueError
+        If the single-light bracket is neither given nor in the plan's
+        parameters, or the sensor figures or ``signal_fraction`` are out of range.
+
+    Notes
+    -----
+    Every LED lights the texel alike: :math:`x` electrons at the longest
+    single-light shutter :math:`T_1` (:math:`x = f\\,\\mathrm{FW}`). A pattern
+    :math:`i` with :math:`m_i` LEDs on and bracket :math:`t_{i,1} < \\dots`
+    is read from its longest unsaturated step, :math:`t_i = \\max\\{t_{i,k} :
+    m_i x t_{i,k} / T_1 \\le \\mathrm{FW}\\}` (HDR merge), so in units of
+    the single-light signal its exposure gain is :math:`g_i = t_i / T_1` and
+    its variance (:mod:`btfcore.acquisition.noise`)
+
+    .. math:: \\sigma_i^2 = \\frac{m_i x}{g_i} + \\frac{\\sigma_r^2}{g_i^2}.
+
+    With :math:`P` the least-squares demultiplexing operator of the shots'
+    pattern matrix at one turntable position and group
+    (:func:`btfcore.capture.demultiplex.demultiplex_operator`),
+    :math:`\\operatorname{Var}(\\hat x_l) = \\sum_i P_{li}^2 \\sigma_i^2`, and
+    the single-light image has :math:`\\sigma_1^2 = x + \\sigma_r^2`:
+
+    .. math:: g = \\sqrt{\\sigma_1^2 \\,/\\, \\overline{\\operatorname{Var}(\\hat x)}}
+
+    averaged over the multiplexed LEDs of all positions. At equal exposure
+    (:math:`g_i = 1`, no step saturated) this is
+    :func:`btfcore.capture.demultiplex.noise_gain`. With every step shortened
+    by :math:`m` (the default :class:`ExposureModel`, :math:`g_i = 1/m`),
+    :math:`\\sigma_i^2 = m^2 \\sigma_1^2` and an S-matrix of order :math:`n`
+    (:math:`m = (n+1)/2`) gives :math:`g \\approx 1/\\sqrt{n+1}` whatever
+    the signal: the same electrons per image, shared by :math:`m` LEDs
+    (docs/acquisition-planning.md, "Multiplexing gain").
+    """
+    fw, sr, f = float(full_well_e), float(read_noise_e), float(signal_fraction)
+    if not (math.isfinite(fw) and fw > 0):
+        raise ValueError(f"full_well_e must be finite and > 0 electrons, got {full_well_e!r}")
+    if not (math.isfinite(sr) and sr >= 0):
+        raise ValueError(f"read_noise_e must be finite and >= 0 electrons, got {read_noise_e!r}")
+    if not (0 < f <= 1):
+        raise ValueError(f"signal_fraction must lie in (0, 1] (a fraction of the full well), got {signal_fraction!r}")
+    if not any(s.n_leds_on > 1 for s in plan.shots):
+        return None
+    if single_ms is None:
+        exp = plan.parameters.get("exposure")
+        if not isinstance(exp, Mapping) or "single_ms" not in exp:
+            raise ValueError(f"plan for {plan.device!r} ({plan.strategy}) has no parameters.exposure.single_ms; "
+                             "give the single-light bracket (single_ms) to predict the multiplexing gain")
+        single_ms = exp["single_ms"]
+    t_ref = max(_bracket(single_ms, "single_ms"))
+    x = f * fw                                                             # electrons per LED at T_1
+    var_single = x + sr * sr                                               # eq. sigma_1^2 = x + sigma_r^2
+    per_group: dict[str, list[float]] = {}
+    saturated = 0
+    cache: dict[tuple, tuple[float, int]] = {}
+    keys = dict.fromkeys((s.turntable, s.group) for s in plan.shots if s.n_leds_on > 1)
+    for t, grp in keys:
+        shots = [s for s in plan.shots if s.turntable == t and s.group == grp]
+        leds = sorted({led for s in shots for led in s.leds})
+        col = {led: j for j, led in enumerate(leds)}
+        M = np.zeros((len(shots), len(leds)))
+        for i, s in enumerate(shots):
+            M[i, [col[led] for led in s.leds]] = 1.0
+        key = (M.tobytes(), M.shape, tuple(s.shutter_ms for s in shots))
+        if key not in cache:
+            var_i = np.empty(len(shots))
+            n_sat = 0
+            for i, s in enumerate(shots):
+                g, sat = _exposure_gain_of(s.n_leds_on, s.shutter_ms, x, t_ref, fw)
+                n_sat += sat
+                var_i[i] = s.n_leds_on * x / g + sr * sr / (g * g)        # eq. sigma_i^2 = m x / g + sigma_r^2 / g^2
+            try:
+                P = demultiplex_operator(M)
+            except ValueError as exc:
+                raise ValueError(f"plan for {plan.device!r}, turntable position {t}, group {grp!r}: {exc}") from None
+            cache[key] = (float(np.sum((P * P) @ var_i)), n_sat)         # eq. sum_l Var(x_l) = sum_li P_li^2 sigma_i^2
+        total, n_sat = cache[key]
+        saturated += n_sat
+        acc = per_group.setdefault(grp, [0.0, 0.0])
+        acc[0] += total
+        acc[1] += len(leds)
+    var_all = sum(v[0] for v in per_group.values()) / sum(v[1] for v in per_group.values())
+    gain = float(math.sqrt(var_single / var_all))                          # eq. g = sqrt(sigma_1^2 / mean Var)
+    return {"gain": gain, "loses": bool(gain < 1.0),
+            "groups": {g: float(math.sqrt(var_single / (v[0] / v[1]))) for g, v in per_group.items()},
+            "saturated_patterns": int(saturated), "signal_fraction": f, "signal_e": x,
+            "full_well_e": fw, "read_noise_e": sr, "single_reference_ms": t_ref}

@@ -45,6 +45,13 @@ Methods (``method=``):
 ABTF patch bases (paper 1, §3.3, §4.1.2) have :func:`abtf_operator` and
 :func:`reconstruct_abtf` (whole textures or bands of texture rows).
 
+Every unregularised solve (``'pinv'``, ``'direct'`` with ``lam = 0``, the
+reduced :math:`\tilde U` of ``'thresholded'``, the ABTF patch rows) whose
+condition number exceeds :data:`btfcore.ILL_CONDITIONED_SOLVE` warns with a
+:class:`btfcore.IllConditionedWarning` giving the figure and the fix
+(docs/demultiplex-resample.md, "Ill-conditioned solves"); regularised ones
+never do.
+
 References
 ----------
 .. [1] The thesis, App. paper 1 (den Brok et al.): D. den Brok, H. C.
@@ -70,6 +77,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import DTypeLike
 
+from btfcore import warn_ill_conditioned
 from btfcore.model._lowrank import check_finite
 from btfcore.model.abtf import _patch_size, patch_grid, patch_matrix
 from btfcore.model.colour import _as_float
@@ -261,9 +269,17 @@ def _rank_error(A: np.ndarray, s: np.ndarray, tol: float, what: str) -> ValueErr
         f"other or more rows, use fewer basis vectors, or regularise (lam > 0)")
 
 
+#: What to do about an ill-conditioned unregularised solve (:func:`btfcore.warn_ill_conditioned`).
+_FIX_PINV = ("regularise (method='tikhonov', or lam > 0 for 'direct'), measure better-spread rows (`btf sample` "
+             "minimises the condition number), or use fewer basis vectors")
+
+
 def _regularised_solve(A: np.ndarray, sigma: np.ndarray | None, lam: float, what: str,
-                       hint: str) -> tuple[np.ndarray, float]:
-    """``R`` with ``C = R b`` the minimiser of ``||A C - b||² + ||lam Sigma^-1 C||²`` (lam = 0: ``A^+``)."""
+                       hint: str, fix: str | None = None, *, warn: bool = True) -> tuple[np.ndarray, float]:
+    """``R`` with ``C = R b`` the minimiser of ``||A C - b||² + ||lam Sigma^-1 C||²`` (lam = 0: ``A^+``);
+    an unregularised one warns (:class:`btfcore.IllConditionedWarning`) with ``fix`` when its condition
+    number exceeds :data:`btfcore.ILL_CONDITIONED_SOLVE` (unless ``warn`` is False: the caller decides); a
+    regularised one is the fix and does not (its noise gain is at most ``1 / (2 lam)``)."""
     n_meas, k = A.shape
     if lam == 0.0:
         if n_meas < k:
@@ -274,14 +290,17 @@ def _regularised_solve(A: np.ndarray, sigma: np.ndarray | None, lam: float, what
         tol = max(A.shape) * np.finfo(np.float64).eps * s[0]
         if s[0] == 0 or s[-1] <= tol:
             raise _rank_error(A, s, tol, what)
-        return (Vt.T / s) @ Ua.T, float(s[0] / s[-1])                 # eq. (3) of paper 1: (M U)^+
+        cond = float(s[0] / s[-1])
+        if warn:
+            warn_ill_conditioned(cond, what, fix or _FIX_PINV, stacklevel=4)
+        return (Vt.T / s) @ Ua.T, cond                                # eq. (3) of paper 1: (M U)^+
     # Substitute C = Sigma D: ||A Sigma D - b||² + lam² ||D||², a ridge regression on A Sigma.
     As = A * sigma                                                    # A Sigma (paper 4, 4.3: kappa(S M U Sigma))
     Ua, s, Vt = np.linalg.svd(As, full_matrices=False)
     filt = s / (s * s + lam * lam)                                    # eq. (10): (As^T As + lam² I)^-1 As^T, by SVD
     R = (sigma[:, None] * (Vt.T * filt)) @ Ua.T                       # C = Sigma D
     smin = s[-1] if n_meas >= k else 0.0
-    return R, float(np.sqrt((s[0] ** 2 + lam**2) / (smin**2 + lam**2)))
+    return R, float(np.sqrt((s[0] ** 2 + lam**2) / (smin**2 + lam**2)))  # regularised: never warns (the fix)
 
 
 def _finish(R: np.ndarray, U: np.ndarray, fused: bool | None, dtype, **kw) -> SolveOperator:
@@ -312,7 +331,9 @@ def _denoise_operator(u: np.ndarray, method: str, variance: np.ndarray | None, d
         raise ValueError(f"variance has shape {var.shape}; it must be ({n_lv},), one value per row of U")
     kept, dropped = threshold_rows(var, decile)
     Rk, cond = _regularised_solve(u[kept], None, 0.0, "U~ (U without the dropped rows)",
-                                  "use a higher decile or fewer basis vectors")
+                                  "use a higher decile or fewer basis vectors",
+                                  "use method='projection', a higher decile (fewer rows dropped) or fewer basis "
+                                  "vectors")
     R = np.zeros((k, n_lv))
     R[:, kept] = Rk                                                   # VMV §4.1: U~^+ B~_demux
     return R, dropped, cond

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from btfcore import warn_ill_conditioned
 from btfcore.acquisition.hadamard import is_s_matrix_order
 
 __all__ = [
@@ -155,6 +156,12 @@ def demultiplex_operator(patterns: np.ndarray, *, method: str = "lstsq") -> np.n
         If the patterns are not binary (names the index), or have rank below
         ``n_leds`` (names the rank): the LEDs cannot be separated.
 
+    Warns
+    -----
+    btfcore.IllConditionedWarning
+        When the SVD path meets patterns whose condition number exceeds
+        :data:`btfcore.ILL_CONDITIONED_SOLVE` (the message gives it and the fix).
+
     Notes
     -----
     For ``k`` columns of an S-matrix of order ``n``,
@@ -193,6 +200,9 @@ def demultiplex_operator(patterns: np.ndarray, *, method: str = "lstsq") -> np.n
             f"{s[-1]:.3g}); the LEDs cannot be separated, use e.g. an S-matrix "
             f"(btfcore.acquisition.hadamard.multiplexing_patterns)"
         )
+    warn_ill_conditioned(float(s[0] / s[-1]), f"the ({n}, {k}) illumination patterns (demultiplexing)",
+                         "use an S-matrix (btfcore.acquisition.hadamard.multiplexing_patterns) or add patterns "
+                         "that separate the LEDs better")
     return (Vt.T / s) @ U.T                                       # eq. P = V S^-1 U^T = M^+
 
 

@@ -222,3 +222,67 @@ def test_dict_round_trip(dome2):
     again = CapturePlan.from_dict(plan.to_dict())
     assert again.to_dict() == plan.to_dict()
     assert again.shots == plan.shots
+
+
+# --------------------------------------------------------------------------- predicted multiplexing gain
+
+
+def _simulated_gain(plan, fw: float, sr: float, fraction: float, seed: int = 7, n_px: int = 20000) -> float:
+    """Measured r.m.s. noise ratio single-light / demultiplexed, turntable 0, one bracket step per pattern."""
+    from btfcore.acquisition.noise import SensorNoise, expose
+    from btfcore.acquisition.plan import _exposure_gain_of
+
+    rng = np.random.default_rng(seed)
+    noise = SensorNoise(full_well_e=fw, read_noise_e=sr, fill=1.0)
+    x = fraction * fw
+    t_ref = max(plan.parameters["exposure"]["single_ms"])
+    shots = [s for s in plan.shots if s.turntable == 0]
+    M = plan.illumination(0)
+    g = np.array([x * _exposure_gain_of(s.n_leds_on, s.shutter_ms, x, t_ref, fw)[0] for s in shots])
+    measured = expose(np.repeat((M @ np.ones(M.shape[1]))[:, None], n_px, axis=1), g, noise, rng, np.float64)
+    demux = demultiplex_operator(M) @ measured
+    single = expose(np.ones((M.shape[1], n_px)), np.full(M.shape[1], x), noise, rng, np.float64)
+    return float(np.sqrt(np.mean((single - 1.0) ** 2) / np.mean((demux - 1.0) ** 2)))
+
+
+@pytest.mark.parametrize("exponent, fraction, loses", [(1.0, 0.8, True), (0.0, 0.8, True), (0.0, 0.0005, False)])
+def test_multiplexing_gain_matches_a_simulated_capture(tiny, exponent, fraction, loses):
+    from btfcore.acquisition.plan import multiplexing_gain
+
+    plan = multiplexed_plan(tiny, ExposureModel(single_ms=(10.0, 100.0, 1000.0), exponent=exponent))
+    fw, sr = tiny.sensor.full_well_e, tiny.sensor.read_noise_e
+    rep = multiplexing_gain(plan, full_well_e=fw, read_noise_e=sr, signal_fraction=fraction)
+    assert rep["loses"] is loses and (rep["gain"] < 1) is loses
+    assert rep["gain"] == pytest.approx(_simulated_gain(plan, fw, sr, fraction), rel=0.03)
+    assert set(rep["groups"]) == {"S19"} and rep["saturated_patterns"] == 0
+
+
+def test_multiplexing_gain_equals_noise_gain_at_equal_exposure(tiny):
+    from btfcore.acquisition.plan import multiplexing_gain
+    from btfcore.capture.demultiplex import noise_gain
+
+    plan = multiplexed_plan(tiny, ExposureModel(single_ms=(1000.0,), exponent=0.0))
+    x = 0.01 * tiny.sensor.full_well_e
+    want = noise_gain(multiplexing_patterns(tiny.n_leds), np.full((tiny.n_leds, 1), x),
+                      read_noise=tiny.sensor.read_noise_e)
+    rep = multiplexing_gain(plan, full_well_e=tiny.sensor.full_well_e, read_noise_e=tiny.sensor.read_noise_e,
+                            signal_fraction=0.01)
+    assert rep["gain"] == pytest.approx(want, rel=1e-12)
+    # a single-light plan has nothing to demultiplex; a bracket step that saturates is counted
+    assert multiplexing_gain(full_single_light_plan(tiny), full_well_e=5500.0, read_noise_e=3.0) is None
+    rep = multiplexing_gain(plan, full_well_e=tiny.sensor.full_well_e, read_noise_e=3.0, signal_fraction=0.8)
+    assert rep["saturated_patterns"] == plan.n_shots
+
+
+def test_multiplexing_gain_rejects_bad_inputs(tiny):
+    from btfcore.acquisition.plan import multiplexing_gain
+
+    plan = multiplexed_plan(tiny)
+    with pytest.raises(ValueError, match="signal_fraction must lie in"):
+        multiplexing_gain(plan, full_well_e=5500.0, read_noise_e=3.0, signal_fraction=1.5)
+    with pytest.raises(ValueError, match="full_well_e must be finite"):
+        multiplexing_gain(plan, full_well_e=0.0, read_noise_e=3.0)
+    custom = CapturePlan.from_dict({**plan.to_dict(), "parameters": {}})
+    with pytest.raises(ValueError, match="no parameters.exposure.single_ms"):
+        multiplexing_gain(custom, full_well_e=5500.0, read_noise_e=3.0)
+    assert multiplexing_gain(custom, full_well_e=5500.0, read_noise_e=3.0, single_ms=(1000.0,))["loses"]

@@ -379,3 +379,50 @@ def test_bad_input_messages():
         reconstruct_abtf(aop, np.ones((2, 4, 6)), out_rows=(0, 3), height=9)
     with pytest.raises(ValueError, match="not a multiple of p"):
         abtf_operator(Up[:44], [0, 1], p=3)
+
+
+# --------------------------------------------------------------------------- ill-conditioned solves warn
+
+
+def _basis_with_a_lonely_vector(n: int = 30, eps: float = 1e-8, seed: int = 3) -> np.ndarray:
+    """(n, 2) orthonormal U whose second vector lives almost only on row 0 (as the brightest light)."""
+    rng = np.random.default_rng(seed)
+    X = np.stack([rng.uniform(0.5, 1.0, n), eps * rng.normal(size=n)], axis=1)
+    X[0, 1] = 1.0
+    return np.linalg.qr(X)[0]
+
+
+def test_ill_conditioned_pinv_and_thresholded_solves_warn_with_the_figure_and_the_fix():
+    from btfcore import ILL_CONDITIONED_SOLVE, IllConditionedWarning
+
+    U = _basis_with_a_lonely_vector()
+    # without row 0 the second vector is ~1e-8: kappa ~ 1e8 > ILL_CONDITIONED_SOLVE
+    with pytest.warns(IllConditionedWarning, match=r"condition number of M U is [0-9.]+e\+0[7-9] > 1e\+06.*"
+                                                  r"regularise \(method='tikhonov'"):
+        op = solve_operator(U, method="pinv", rows=np.arange(1, 30))
+    assert op.condition > ILL_CONDITIONED_SOLVE
+    variance = np.ones(30)
+    variance[0] = 100.0                                       # the brightest row is the one dropped
+    with pytest.warns(IllConditionedWarning, match=r"U~ \(U without the dropped rows\).*method='projection'"):
+        op = solve_operator(U, method="thresholded", variance=variance)
+    assert op.dropped.tolist() == [0] and op.condition > ILL_CONDITIONED_SOLVE
+    # regularised: the fix, no warning (pyproject turns BtfWarning into errors)
+    op = solve_operator(U, np.ones(2), method="tikhonov", rows=np.arange(1, 30), lam=0.01)
+    assert op.condition < ILL_CONDITIONED_SOLVE
+
+
+def test_well_conditioned_solves_do_not_warn():
+    import warnings
+
+    from btfcore import IllConditionedWarning
+
+    U = _basis_with_a_lonely_vector()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", IllConditionedWarning)
+        op = solve_operator(U, method="pinv", rows=np.arange(0, 30, 2))  # row 0 kept
+        assert op.condition < 1e3
+        variance = np.ones(30)
+        variance[5] = 100.0
+        op = solve_operator(U, method="thresholded", variance=variance)
+        assert op.dropped.tolist() == [5] and op.condition < 1e3
+        demultiplex(np.ones((19, 4)), multiplexing_patterns(16)[:, :12], method="pinv")

@@ -145,3 +145,31 @@ def test_help_explains_the_commands():
         out = subprocess.run([sys.executable, "-m", "flows.cli", command, "--help"], capture_output=True, text=True,
                              check=True).stdout
         assert words in out
+
+
+def test_plan_flags_multiplexing_that_loses(tmp_path, capsys):
+    # the default exposure model shortens a pattern of m LEDs m times: the demultiplexed noise grows
+    code, summary, err = _run(capsys, "plan", "--device", "tiny", "--strategy", "multiplexed", "--out",
+                              str(tmp_path / "lose"))
+    assert code == 0, err
+    doc = json.loads((tmp_path / "lose" / "plan.json").read_text())
+    assert summary["multiplexing_loses"] is True and doc["multiplexing_loses"] is True
+    assert doc["multiplexing_gain"] < 1 and doc["multiplexing_gain"] == pytest.approx(summary["multiplexing_gain"], abs=1e-4)
+    assert "WARNING: multiplexing loses" in err and "single-light" in err and "fewer LEDs per pattern" in err
+    assert "single-light" in doc["multiplexing"]["advice"]
+    # the single-light shutter times for the patterns and a dark texel (read noise dominant): multiplexing wins
+    code, summary, err = _run(capsys, "plan", "--device", "tiny", "--strategy", "multiplexed", "--exposure-exponent",
+                              "0", "--signal-fraction", "0.0005", "--out", str(tmp_path / "win"))
+    assert code == 0, err
+    doc = json.loads((tmp_path / "win" / "plan.json").read_text())
+    assert doc["multiplexing_loses"] is False and summary["multiplexing_gain"] > 1.2
+    assert "WARNING" not in err and "predicted multiplexing gain" in err and "advice" not in doc["multiplexing"]
+    # single-light plans carry no gain; a bad fraction is refused with the option named
+    code, summary, err = _run(capsys, "plan", "--device", "tiny", "--strategy", "full", "--out", str(tmp_path / "f"))
+    assert code == 0 and "multiplexing_gain" not in summary and "multiplexing" not in err
+    code, _, err = _run(capsys, "plan", "--device", "tiny", "--strategy", "multiplexed", "--signal-fraction", "0",
+                        "--out", str(tmp_path / "bad"))
+    assert code == EXIT_BAD_INPUT and "--signal-fraction 0 must lie in (0, 1]" in err
+    code, _, err = _run(capsys, "plan", "--device", "tiny", "--strategy", "multiplexed", "--exposure-exponent", "-1",
+                        "--out", str(tmp_path / "bad"))
+    assert code == EXIT_BAD_INPUT and "--exposure-exponent -1 must be finite and >= 0" in err
