@@ -20,7 +20,7 @@ def import_stage(source: str, out: str, scheduler_address: str, overwrite: bool,
     from flows.progress import progress_bar
     from tasks.bonn.import_btf import import_btf
 
-    bar, update = progress_bar("import-btf", progress, unit="band")
+    bar, update = progress_bar("import-btf", progress, unit="chunk")
     with bar, Client(scheduler_address, set_as_default=False) as client:
         return import_btf(source, out, client, overwrite=overwrite, material_class=material_class,
                           material_id=material_id, on_progress=update)
