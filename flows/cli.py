@@ -749,11 +749,15 @@ def _main(args: argparse.Namespace) -> int:
         forked = (" (in a process forked by the btf server's command runner, imports done)"
                   if os.environ.get(CHILD_ENV) else "")
         say(f"{_label(args)}: checking the inputs{forked} ...")
-    prepared = _preflight(args, command)
-    if not command.on_cluster(args):
-        return command.run(args)  # in this process: sample, plan, render, validate, export-exr, ...
+    from tasks.locks import output_locks
 
-    summary = run_on_cluster(args, command, prepared, info)
+    outputs = [p for p in _io_args(args)[0].values() if "://" not in p]  # not fsspec URLs
+    with output_locks(outputs, _label(args)):  # one writer per output (tasks.locks)
+        prepared = _preflight(args, command)
+        if not command.on_cluster(args):
+            return command.run(args)  # in this process: sample, plan, render, validate, export-exr, ...
+
+        summary = run_on_cluster(args, command, prepared, info)
     print(json.dumps(summary, indent=2))
     return 0
 
