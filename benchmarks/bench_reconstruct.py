@@ -42,16 +42,7 @@ import sys
 import time
 
 import numpy as np
-from _measure import best_seconds, log
-
-
-def gemm_rate(m: int, k: int, n: int, repeats: int = 3) -> float:
-    """GFLOP/s of a float32 numpy ``(m, k) @ (k, n)`` into a preallocated output, best of ``repeats``."""
-    rng = np.random.default_rng(0)
-    A = rng.standard_normal((m, k), dtype=np.float32)
-    B = rng.standard_normal((k, n), dtype=np.float32)
-    C = np.empty((m, n), np.float32)
-    return 2.0 * m * k * n / best_seconds(lambda: np.matmul(A, B, out=C), repeats) / 1e9
+from _measure import best_seconds, gemm_rate, log
 
 
 def gemm_rates(n_lv: int, n_meas: int, chunk: int, repeats: int) -> dict[str, float]:
