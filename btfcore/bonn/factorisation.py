@@ -16,47 +16,51 @@ How the decode stays at GEMM speed
 ----------------------------------
 The result is channel-interleaved, ``(n_sel_rows, n_sel_tx, n_ch)``, while each
 channel's product is its own GEMM. Writing a per-channel product into
-``out[..., c]`` (stride ``n_ch``) is a strided copy that, in numpy, costs as
-much as the GEMM itself (measured ~1.3 ns per element against ~0.7 ns for a
-K = 16 GEMM). With a small total rank the decode instead runs as *one* GEMM per
-texel tile that writes straight into ``out``:
+``out[..., c]`` (stride ``n_ch``) is a strided copy that, in numpy, costs about
+as much as a K = 64 GEMM (0.60 ns per value against 0.61). Two routes:
 
-.. math::
+* Small total rank: *one* GEMM per texel tile that writes straight into ``out``:
 
-    out[:, j_0{:}j_1, :].\\mathrm{reshape}(n_r, -1) = [U_0 \\, U_1 \\, U_2] \\; W^T,
+  .. math::
 
-where row ``t * n_ch + c`` of ``W`` holds ``SxV_c[t]`` in column block ``c`` and
-zeros elsewhere. That multiplies ``n_ch`` times the useful flops, i.e. it wastes
-``(n_ch - 1) sum(K_c)`` multiply-adds per output value, which costs little while
-the GEMM is bound by writing its output. Beyond :data:`BLOCK_DIAGONAL_MAX_WASTE`
-wasted multiply-adds (``sum K_c > 96`` for RGB) per-channel GEMMs of small tiles
-into cache-resident buffers plus the interleaving copy are cheaper when BLAS runs
-one thread (as on the pipeline's Dask workers). With several BLAS threads the
-small per-tile GEMMs parallelise badly and the copy not at all, so the block
-route is kept up to :data:`BLOCK_DIAGONAL_MAX_WASTE_THREADED`.
+      out[:, j_0{:}j_1, :].\\mathrm{reshape}(n_r, -1) = [U_0 \\, U_1 \\, U_2] \\; W^T,
+
+  where row ``t * n_ch + c`` of ``W`` holds ``SxV_c[t]`` in column block ``c`` and
+  zeros elsewhere. That multiplies ``n_ch`` times the useful flops, i.e. it wastes
+  ``(n_ch - 1) sum(K_c)`` multiply-adds per output value, which costs little while
+  the GEMM is bound by writing its output.
+* Beyond :data:`BLOCK_DIAGONAL_MAX_WASTE` wasted multiply-adds (``sum K_c > 48`` for
+  RGB): per-channel GEMMs of 1024 x 1024 tiles into buffers, interleaved into ``out``
+  by OpenCV's vectorised ``cv2.merge`` (0.28 ns per value), on as many Python threads
+  as BLAS would use, each with BLAS held to one thread.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 
+import cv2
 import numpy as np
 from scipy import linalg
 
-__all__ = ["BLOCK_DIAGONAL_MAX_WASTE", "BLOCK_DIAGONAL_MAX_WASTE_THREADED", "decode_textures", "factorise"]
+__all__ = ["BLOCK_DIAGONAL_MAX_WASTE", "decode_textures", "factorise"]
 
 #: Largest ``(n_ch - 1) * sum(K_c)`` (multiply-adds wasted per output value) decoded by one
-#: block-structured GEMM per texel tile (see the module notes): ``sum(K_c) <= 96`` for RGB. Measured on a
-#: 2-core Xeon VM, one BLAS thread: the two routes tie near ``K_c = 24-32`` per RGB channel.
-BLOCK_DIAGONAL_MAX_WASTE = 192
-#: The same limit while BLAS runs several threads (``sum(K_c) <= 384`` for RGB). Measured on the same VM with
-#: two BLAS threads, 6,561 rows x 4,096 texels, K = 64 per channel: block route 0.41 of the GEMM rate,
-#: per-channel route 0.26-0.29.
-BLOCK_DIAGONAL_MAX_WASTE_THREADED = 768
+#: block-structured GEMM per texel tile (see the module notes): ``sum(K_c) <= 48`` for RGB. Measured on the
+#: 2-core development VM (6,561 rows x 4,096 texels, ratio to the same plain GEMMs, one / two BLAS threads):
+#: K_c = 8: block 0.58 / 0.44, per-channel 0.51 / 0.23; K_c = 16: 0.51 / 0.60 against 0.51 / 0.59;
+#: K_c = 32: 0.44 / 0.45 against 0.55 / 0.62; K_c = 64: 0.43 / 0.40 against 0.66 / 0.64.
+BLOCK_DIAGONAL_MAX_WASTE = 96
 #: Bytes of the block-structured right factor ``W`` of one texel tile (and of the row block of the
 #: fallback buffer for a strided ``out``). Measured (6,561 rows, 4,096-texel bands, K = 16 and 64): tiles of
 #: 16 MiB ran 1.1-1.2x faster than 1 MiB ones (fewer, wider GEMMs; OpenBLAS splits them better).
 _TILE_BYTES = 16 << 20
+#: Rows and texels of a tile of the per-channel route (4 MiB per channel). Measured on the development VM
+#: (6,561 rows x 4,096 texels, K = 64, one BLAS thread): 1024 x 1024 tiles 0.62-0.63 of the GEMM rate,
+#: 256 x 1024 0.59-0.61, 128 x 256 0.55-0.56.
+_MERGE_TILE = 1024
+#: Most channels ``cv2.merge`` interleaves (OpenCV's CV_CN_MAX).
+_CV_MAX_CHANNELS = 512
 
 
 def _blas_threads() -> int:
@@ -161,8 +165,7 @@ def decode_textures(U: Sequence[np.ndarray], SxV: Sequence[np.ndarray], rows, te
     u_all = np.empty((n_r, offsets[-1]), np.float32)
     for c in range(n_ch):
         u_all[:, offsets[c]:offsets[c + 1]] = _take(U[c], rows, 0, n_r)
-    limit = BLOCK_DIAGONAL_MAX_WASTE if _blas_threads() <= 1 else BLOCK_DIAGONAL_MAX_WASTE_THREADED
-    if (n_ch - 1) * sum(ks) <= limit:
+    if (n_ch - 1) * sum(ks) <= BLOCK_DIAGONAL_MAX_WASTE:
         _decode_block_diagonal(u_all, offsets, SxV, texels, n_t, out)
     else:
         _decode_per_channel(u_all, offsets, SxV, texels, n_t, out)
@@ -194,30 +197,52 @@ def _decode_block_diagonal(u_all, offsets, SxV, texels, n_t, out) -> None:
 
 
 def _decode_per_channel(u_all, offsets, SxV, texels, n_t, out) -> None:
-    """Per-channel GEMMs of a small tile into cache-resident buffers, then the interleaving copy into ``out``.
+    """Per-channel GEMMs of a tile into buffers, then OpenCV's vectorised interleave into ``out``.
 
-    Tiles of 128 rows x 256 texels (128 KiB per channel): every channel's product of a tile is computed
-    first, then copied into the tile of ``out`` (3 KiB contiguous per row for RGB) while both are in
-    cache; larger tiles measured up to 1.7x slower (the copy then streams ``out`` once per channel).
+    Tiles of :data:`_MERGE_TILE` rows x texels: each channel's product of a tile goes into its own
+    buffer, then ``cv2.merge`` interleaves them into the tile of ``out`` (0.28 ns per value on the
+    development VM, against 0.60 for numpy's strided ``block[..., c] = tile``). While BLAS runs several
+    threads, as many Python threads (both calls release the GIL) each take a share of the rows with BLAS
+    held to one thread for the call: the merge then runs on every core too.
     """
     n_r = u_all.shape[0]
+    threads = _blas_threads()
+    parts = max(1, min(threads, -(-n_r // _MERGE_TILE)))
+    bounds = [(n_r * i // parts, n_r * (i + 1) // parts) for i in range(parts)]
+    if parts == 1:
+        _decode_rows_per_channel(u_all, offsets, SxV, texels, n_t, out, 0, n_r)
+        return
+    from concurrent.futures import ThreadPoolExecutor
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(1, user_api="blas"), ThreadPoolExecutor(parts) as pool:
+        jobs = [pool.submit(_decode_rows_per_channel, u_all, offsets, SxV, texels, n_t, out, r_lo, r_hi)
+                for r_lo, r_hi in bounds]
+        for job in jobs:
+            job.result()
+
+
+def _decode_rows_per_channel(u_all, offsets, SxV, texels, n_t, out, r_lo: int, r_hi: int) -> None:
+    """Rows ``r_lo:r_hi`` of :func:`_decode_per_channel`, one thread's share."""
     n_ch = len(SxV)
-    t_tile = min(n_t, 256)
-    r_tile = min(n_r, 128)
-    buf = np.empty((n_ch, r_tile * t_tile), np.float32)
-    for t0 in range(0, n_t, t_tile):
-        t1 = min(n_t, t0 + t_tile)
+    tile = _MERGE_TILE
+    buf = np.empty((n_ch, min(tile, r_hi - r_lo) * min(tile, n_t)), np.float32)
+    interleaved = out.strides[2] == 4 and out.strides[1] == 4 * n_ch
+    for t0 in range(0, n_t, tile):
+        t1 = min(n_t, t0 + tile)
         # aligned float32 copies: numpy's matmul skips BLAS on the unaligned float32 views of a memory map
         right = [np.require(_take(SxV[c], texels, t0, t1), np.float32, ["C", "A"]).T for c in range(n_ch)]
-        for r0 in range(0, n_r, r_tile):
-            r1 = min(n_r, r0 + r_tile)
+        for r0 in range(r_lo, r_hi, tile):
+            r1 = min(r_hi, r0 + tile)
             n = (r1 - r0) * (t1 - t0)
             tiles = [buf[c, :n].reshape(r1 - r0, t1 - t0) for c in range(n_ch)]
             for c in range(n_ch):
                 np.matmul(u_all[r0:r1, offsets[c]:offsets[c + 1]], right[c], out=tiles[c])
             block = out[r0:r1, t0:t1]
-            for c in range(n_ch):
-                block[..., c] = tiles[c]
+            merged = cv2.merge(tiles, dst=block) if interleaved and n_ch <= _CV_MAX_CHANNELS else None
+            if merged is None or not np.shares_memory(merged, block):   # OpenCV could not write in place
+                for c in range(n_ch):
+                    block[..., c] = tiles[c]
 
 
 def factorise(B: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -8,7 +8,7 @@ import pytest
 from btfcore.bonn import decode_colour, decode_textures, encode_colour, factorise
 from threadpoolctl import threadpool_limits
 
-from btfcore.bonn.factorisation import BLOCK_DIAGONAL_MAX_WASTE, BLOCK_DIAGONAL_MAX_WASTE_THREADED
+from btfcore.bonn.factorisation import BLOCK_DIAGONAL_MAX_WASTE
 
 F32 = float(np.finfo(np.float32).eps)
 
@@ -86,20 +86,23 @@ def test_decode_crosses_texel_tiles_in_both_paths(monkeypatch) -> None:
     decode_textures(U, SxV, slice(None), slice(3, None), out=planar)
     _check(planar, U, SxV, slice(None), slice(3, None))
     monkeypatch.undo()
-    # rank above both block-diagonal limits: per-channel GEMMs and the interleaving copy, tiles of
-    # 128 rows x 256 texels
-    k = BLOCK_DIAGONAL_MAX_WASTE_THREADED // 4 + 1
-    U, SxV = _factors(rng, 300, 1_000, (k, k, 3), np.float16)
-    _check(decode_textures(U, SxV, slice(None)), U, SxV, slice(None), slice(None))
-    # between the limits: the route depends on the BLAS threads, the values do not
+    # rank above the block-diagonal limit: per-channel GEMMs interleaved by cv2.merge, in tiles that the
+    # selection crosses (tiles of 16 rows x texels here), on one thread and on two row shares
+    monkeypatch.setattr(fact, "_MERGE_TILE", 16)
     k = BLOCK_DIAGONAL_MAX_WASTE // 4 + 1
     U, SxV = _factors(rng, 300, 1_000, (k, k, 3), np.float16)
-    with threadpool_limits(1, "blas"):
-        one = decode_textures(U, SxV, slice(None), np.arange(999, -1, -3))
-    with threadpool_limits(2, "blas"):
-        two = decode_textures(U, SxV, slice(None), np.arange(999, -1, -3))
-    for got in (one, two):
-        _check(got, U, SxV, slice(None), np.arange(999, -1, -3))
+    texels = np.arange(999, -1, -3)
+    for threads in (1, 2):
+        with threadpool_limits(threads, "blas"):
+            _check(decode_textures(U, SxV, slice(None), texels), U, SxV, slice(None), texels)
+            # a channel-planar out cannot take cv2.merge: the strided copy writes it
+            planar = np.empty((3, 300, texels.size), np.float32).transpose(1, 2, 0)
+            decode_textures(U, SxV, slice(None), texels, out=planar)
+            _check(planar, U, SxV, slice(None), texels)
+            wide = np.zeros((300, texels.size + 7, 3), np.float32)   # interleaved rows of a wider array:
+            decode_textures(U, SxV, slice(None), texels, out=wide[:, 7:])   # cv2.merge writes in place
+            _check(wide[:, 7:], U, SxV, slice(None), texels)
+            assert (wide[:, :7] == 0).all(), "only the view was written"
 
 
 def test_decode_from_a_float16_memmap_on_disk_leaves_the_file_alone(tmp_path) -> None:
