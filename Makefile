@@ -12,7 +12,7 @@ PYTEST_ARGS ?=
 VENV_READERS ?= .venv-readers
 READERS_LOG  := $(VENV_READERS).log
 
-.PHONY: demo test bench venv clean readers
+.PHONY: demo test bench bench-summary venv clean readers
 
 venv: $(STAMP)
 
@@ -53,9 +53,33 @@ test: $(STAMP) $(READERS_LOG)
 	if [ $$rc -eq 5 ]; then echo "pytest collected no tests (exit 5); nothing was checked"; exit 0; fi; \
 	exit $$rc
 
-# Speed is measured here, never in tests; results go to docs/benchmarks.md.
+# Speed is measured here, never in tests; results go to docs/benchmarks.md ("Running them").
+# Each benchmark's JSON goes to $(BENCH_OUT)/NAME.json, its progress to NAME.log; a failing one is
+# recorded as failed and the next one runs; the table of every bar ends the run. QUICK=1 runs only the
+# benchmarks with a --quick mode (a smoke run whose figures are not results), into bench-results-quick.
+# BENCHES="benchmarks/bench_als.py ..." runs only those (the table still shows the folder's other results).
+QUICK     ?=
+BENCH_OUT ?= bench-results$(if $(QUICK),-quick)
+BENCHES   ?= $(sort $(wildcard benchmarks/bench_*.py))
+
 bench: $(STAMP)
-	@for f in benchmarks/bench_*.py; do echo "== $$f"; $(BIN)/python $$f || exit 1; done
+	@mkdir -p $(BENCH_OUT); \
+	for f in $(BENCHES); do \
+	  name=$$(basename $$f .py); name=$${name#bench_}; \
+	  rm -f $(BENCH_OUT)/$$name.json $(BENCH_OUT)/$$name.log; \
+	  if [ -n "$(QUICK)" ] && ! grep -q -e '"--quick"' $$f; then \
+	    echo '{"benchmark": "'$$name'", "skipped": "no quick mode", "bars": []}' > $(BENCH_OUT)/$$name.json; \
+	    continue; \
+	  fi; \
+	  echo "== $$f$(if $(QUICK), --quick) (progress: $(BENCH_OUT)/$$name.log)"; start=$$(date +%s); \
+	  $(BIN)/python $$f $(if $(QUICK),--quick) > $(BENCH_OUT)/$$name.json 2> $(BENCH_OUT)/$$name.log; \
+	  echo "exit status $$? after $$(( $$(date +%s) - start )) s" >> $(BENCH_OUT)/$$name.log; \
+	done; \
+	$(BIN)/python benchmarks/summary.py $(BENCH_OUT)
+
+# The table again, from the results of the last `make bench` (QUICK=1: of the last quick run).
+bench-summary: $(STAMP)
+	@$(BIN)/python benchmarks/summary.py $(BENCH_OUT)
 
 clean:
 	rm -rf $(VENV) $(OUT) .pytest_cache $(VENV_READERS) $(READERS_LOG)

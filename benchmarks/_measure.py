@@ -2,6 +2,9 @@
 
 The scripts run as ``python benchmarks/bench_x.py``, so this folder is on
 ``sys.path`` and they import it as ``_measure``.
+
+Every benchmark's JSON result holds a list ``"bars"`` of :func:`bar` verdicts, one per bar it
+measures; ``benchmarks/summary.py`` prints them as one table (docs/benchmarks.md, "Running them").
 """
 
 from __future__ import annotations
@@ -11,8 +14,36 @@ import sys
 import threading
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
+
+
+def bar(measure: str, value: float | None, goal: str, met: bool | None, issue: int | None) -> dict:
+    """One verdict of a benchmark, as every ``bench_*.py`` lists them under ``"bars"`` in its JSON.
+
+    Parameters
+    ----------
+    measure : str
+        What ``value`` is, with its unit or as a ratio (``"ALS GFLOP/s / GEMM GFLOP/s"``).
+    value : float or None
+        The figure measured in this run; None when the run could not measure it (a peer that did
+        not install, a skipped part: say why in ``goal``).
+    goal : str
+        The bar ``value`` is held to (``">= 0.8"``), including any condition beside it.
+    met : bool or None
+        Whether this run meets the goal; None when there is no verdict: a figure recorded without a
+        goal, or a bar this run could not measure (``value`` None).
+    issue : int or None
+        The issue that set the goal (the latest one where an issue raised it).
+
+    Returns
+    -------
+    dict
+        ``{"measure", "value", "goal", "met", "issue"}`` with plain JSON types.
+    """
+    return {"measure": measure, "value": None if value is None else float(value), "goal": goal,
+            "met": None if met is None else bool(met), "issue": issue}
 
 
 def log(msg: str) -> None:
@@ -93,3 +124,54 @@ def torch_gemm_rate(n: int = 2048, repeats: int = 3) -> float:
     A, B = torch.randn((n, n), generator=g), torch.randn((n, n), generator=g)
     C = torch.empty((n, n))
     return 2.0 * n**3 / best_seconds(lambda: torch.matmul(A, B, out=C), repeats) / 1e9
+
+
+def disk_write_rate(folder: Path, n_bytes: int = 1 << 30) -> float:
+    """GB/s of writing and fsync-ing ``n_bytes`` of random bytes to one file in ``folder``, best of 2."""
+    data = np.random.default_rng(1).integers(0, 255, n_bytes, dtype=np.uint8)
+    path = Path(folder) / "disk-probe.bin"
+
+    def write() -> None:
+        with open(path, "wb") as f:
+            data.tofile(f)
+            f.flush()
+            os.fsync(f.fileno())
+        path.unlink()
+
+    return n_bytes / best_seconds(write, 2) / 1e9
+
+
+def disk_read_rate(folder: Path, n_bytes: int = 1 << 30, block: int = 16 << 20) -> float:
+    """GB/s of reading ``n_bytes`` from one file in ``folder`` past the page cache, best of 2.
+
+    The file is written and fsync-ed once; before each read its pages are dropped from the page
+    cache (``posix_fadvise(DONTNEED)``, which needs no privileges for clean pages), so the reads come
+    from the disk. Read in ``block``-byte pieces into one reused buffer.
+    """
+    path = Path(folder) / "disk-read-probe.bin"
+    piece = np.random.default_rng(2).integers(0, 255, block, dtype=np.uint8)
+    with open(path, "wb") as f:
+        for _ in range(max(1, n_bytes // block)):
+            piece.tofile(f)
+        f.flush()
+        os.fsync(f.fileno())
+    size = path.stat().st_size
+    buffer = bytearray(block)
+
+    def read() -> None:
+        with open(path, "rb", buffering=0) as f:
+            os.posix_fadvise(f.fileno(), 0, 0, os.POSIX_FADV_DONTNEED)
+            while f.readinto(buffer):
+                pass
+
+    try:
+        seconds = min(_timed(read) for _ in range(2))
+    finally:
+        path.unlink()
+    return size / seconds / 1e9
+
+
+def _timed(fn: Callable[[], object]) -> float:
+    start = time.perf_counter()
+    fn()
+    return time.perf_counter() - start

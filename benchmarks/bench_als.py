@@ -28,10 +28,11 @@ torch's default threads). Reported:
   of ``n_tx + n_lv`` random SPD ``c x c`` systems, timed on its own, and its
   share of an iteration.
 
-Issue 4's bar: the batched ALS solve runs at no less than 40 % of the GEMM
-rate.
+Bar (issue 21, raising issue 4's 0.40): the batched ALS solve runs at no less than 0.8 of the
+GEMM rate (``over_gemm_peak``).
 
-Usage: ``python benchmarks/bench_als.py [--n-lv 4096] [--n-tx 16384] [--c 64] [--repeats 3]``
+Usage: ``python benchmarks/bench_als.py [--quick] [--n-lv 4096] [--n-tx 16384] [--c 64] [--repeats 3]``;
+``--quick``: 1,024 x 4,096, c = 32, one repeat (a smoke run, not a figure).
 """
 
 from __future__ import annotations
@@ -44,7 +45,9 @@ import sys
 import time
 
 import numpy as np
-from _measure import best_seconds, log
+from _measure import bar, best_seconds, log
+
+ALS_OVER_GEMM = 0.8      # issue 21
 
 
 def torch_gemm_rate(m: int, k: int, n: int, repeats: int = 3, transpose_a: bool = False) -> float:
@@ -102,7 +105,10 @@ def main() -> int:
     parser.add_argument("--c", type=int, default=64)
     parser.add_argument("--repeats", type=int, default=3, help="runs of T(1) and T(3), interleaved [default: 3]")
     parser.add_argument("--backend", default="auto", choices=("auto", "torch", "numpy"))
+    parser.add_argument("--quick", action="store_true", help="1024 x 4096, c = 32, one repeat")
     args = parser.parse_args()
+    if args.quick:
+        args.n_lv, args.n_tx, args.c, args.repeats = 1024, 4096, 32, 1
     import torch
 
     from btfcore.model.als import CHUNK_BYTES, als_basis, relative_error_weights
@@ -158,7 +164,8 @@ def main() -> int:
         "over_gemm_peak": round(rate / peak, 3), "over_torch_gemm_peak": round(rate / torch_peak, 3),
         "cholesky_s_per_iteration": round(chol, 2), "cholesky_share": round(chol / per_it, 3),
         "objective_non_increasing": bool(np.all(np.diff(res3.objective) <= 1e-6 * res3.objective[:-1])),
-        "target": ">= 0.40 of the GEMM rate", "target_met": bool(rate / peak >= 0.40),
+        "bars": [bar("ALS GFLOP/s / GEMM GFLOP/s", round(rate / peak, 3), f">= {ALS_OVER_GEMM}",
+                     rate / peak >= ALS_OVER_GEMM, 21)],
         "load_average_1min": {"start": load_start, "end": round(os.getloadavg()[0], 2)},
     }
     print(json.dumps(result, indent=2))

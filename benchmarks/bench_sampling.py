@@ -12,9 +12,11 @@ the same seeded random start:
 
 * greedy: one run of :func:`btfcore.acquisition.sampling.greedy`, seconds ``t_g`` and
   kappa ``kappa_g``;
-* random swap: ``--swap-steps`` trial swaps, timed; every step costs the
-  same, so the time at which it first reached a kappa is the run's seconds
-  times the fraction of steps;
+* random swap: for ``--swap-budget`` times greedy's seconds of wall time, in
+  calls of 5,000 trial swaps that each continue from the last selection
+  (or exactly ``--swap-steps`` in one call when given), stopping early once
+  it reaches greedy's kappa; each call's steps cost the same, so the time at
+  which it first reached a kappa is interpolated within its call;
 * **ratio** = (time of the random swap to first reach ``kappa <= kappa_g``)
   / ``t_g``: the speed-up at equal kappa. When the random swap never reaches
   ``kappa_g`` within its steps, the ratio is reported as a lower bound
@@ -22,11 +24,13 @@ the same seeded random start:
 * also: the random swap's final kappa and the ratio of its time to reach it
   over ``t_g`` (greedy's kappa is then lower still).
 
-Target: ratio >= 10 at every scale. Timings are single runs (both samplers
+Target: ratio >= 100 at every scale (issue 21; issue 5 asked for 10): with the default budget of 100,
+a swap that never reaches greedy's kappa bounds the ratio from below at about 100. Timings are single runs (both samplers
 are deterministic given their seeds); run with ``OMP_NUM_THREADS=1`` (the
 k x k eigenproblems do not gain from threads) on an otherwise idle machine.
 
-Usage: ``python benchmarks/bench_sampling.py [--quick] [--scales 47:64,66:128,151:128,151:200] [--swap-steps 50000]``
+Usage: ``python benchmarks/bench_sampling.py [--quick] [--scales 47:64,66:128,151:128,151:200]
+[--swap-budget 100 | --swap-steps N]``
 """
 
 from __future__ import annotations
@@ -39,10 +43,39 @@ import sys
 import time
 
 import numpy as np
-from _measure import log
+from _measure import bar, log
 
 
-def run_scale(dirs: int, k: int, n_tx: int, n_s: int | None, swap_steps: int, seed: int) -> dict:
+TARGET_RATIO = 100
+#: Trial swaps per call of the time-budgeted random swap (:func:`_swap_for`): about 1-3 s each.
+SWAP_CHUNK = 5000
+
+
+def _swap_for(U: np.ndarray, n_s: int, seconds: float, kappa_goal: float, seed: int):
+    """Random swap for ``seconds`` of wall time (or until it reaches ``kappa_goal``), in calls of
+    :data:`SWAP_CHUNK` steps, each continuing from the last one's selection (Alg. 1 keeps no other
+    state; each call draws from its own seed). Returns the joined result, the seconds it ran and
+    the time of every history entry (each chunk's seconds spread evenly over its steps)."""
+    from dataclasses import replace
+
+    from btfcore.acquisition.sampling import random_swap
+
+    history, times, steps, accepted, elapsed, start, part = [], [np.zeros(1)], 0, 0, 0.0, None, None
+    while elapsed < seconds:
+        t = time.perf_counter()
+        part = random_swap(U, n_s, max_steps=SWAP_CHUNK, seed=seed + steps, start=start)
+        dt = time.perf_counter() - t
+        history.append(part.history if not history else part.history[1:])
+        times.append(elapsed + dt * np.arange(1, part.steps + 1) / part.steps)
+        steps, accepted, elapsed, start = steps + part.steps, accepted + part.accepted, elapsed + dt, part.units
+        if part.kappa <= kappa_goal:
+            break
+    return replace(part, history=np.concatenate(history), steps=steps, accepted=accepted), elapsed, \
+        np.concatenate(times)
+
+
+def run_scale(dirs: int, k: int, n_tx: int, n_s: int | None, swap_steps: int | None, swap_budget: float,
+              seed: int) -> dict:
     """Greedy and random swap on one basis; the comparison at equal kappa."""
     from btfcore.acquisition.sampling import greedy, random_swap
     from btfcore.acquisition.synthetic_basis import synthetic_log_abrdf_basis
@@ -55,15 +88,18 @@ def run_scale(dirs: int, k: int, n_tx: int, n_s: int | None, swap_steps: int, se
     g = greedy(U, n_s, seed=seed)
     t_g = time.perf_counter() - t
     log(f"greedy: kappa {g.kappa:.4f} in {t_g:.2f} s ({g.steps} accepted swaps)")
-    t = time.perf_counter()
-    r = random_swap(U, n_s, max_steps=swap_steps, seed=seed)
-    t_s = time.perf_counter() - t
+    if swap_steps is None:
+        r, t_s, times = _swap_for(U, n_s, swap_budget * t_g, g.kappa, seed)
+    else:
+        t = time.perf_counter()
+        r = random_swap(U, n_s, max_steps=swap_steps, seed=seed)
+        t_s = time.perf_counter() - t
+        times = np.linspace(0.0, t_s, r.steps + 1)       # every step costs the same
     h = r.history
-    per_step = t_s / max(1, r.steps)
     step_final = int(np.argmax(h <= h[-1]))
     reach = np.flatnonzero(h <= g.kappa)
     reached = bool(reach.size)
-    t_reach = per_step * int(reach[0]) if reached else t_s
+    t_reach = float(times[reach[0]]) if reached else t_s
     log(f"random swap: kappa {r.kappa:.4f} after {r.steps} steps in {t_s:.2f} s; "
         f"{'reached' if reached else 'never reached'} the greedy kappa")
     ratio = t_reach / t_g
@@ -72,13 +108,13 @@ def run_scale(dirs: int, k: int, n_tx: int, n_s: int | None, swap_steps: int, se
         "greedy": {"seconds": round(t_g, 3), "kappa": round(g.kappa, 5), "accepted_swaps": g.steps},
         "random_swap": {"seconds": round(t_s, 3), "steps": r.steps, "accepted": r.accepted,
                         "kappa_start": round(float(h[0]), 5), "kappa": round(r.kappa, 5),
-                        "seconds_to_its_final_kappa": round(per_step * step_final, 3),
+                        "seconds_to_its_final_kappa": round(float(times[step_final]), 3),
                         "reached_greedy_kappa": reached,
                         "seconds_to_greedy_kappa": round(t_reach, 3) if reached else None},
         "ratio_at_equal_kappa": round(ratio, 1),
         "ratio_is_lower_bound": not reached,
-        "ratio_to_swap_final": round(per_step * step_final / t_g, 1),
-        "target_met": bool(ratio >= 10 and g.kappa <= r.kappa),
+        "ratio_to_swap_final": round(float(times[step_final]) / t_g, 1),
+        "target_met": bool(ratio >= TARGET_RATIO and g.kappa <= r.kappa),
     }
 
 
@@ -90,14 +126,16 @@ def main() -> int:
                              "[default: 47:64,66:128,151:128,151:200]")
     parser.add_argument("--n-tx", type=int, default=1024)
     parser.add_argument("--n-s", type=int, default=None, help="rows to select [default: 6 %% of the rows]")
-    parser.add_argument("--swap-steps", type=int, default=50000)
+    parser.add_argument("--swap-steps", type=int, default=None, help="exact trial swaps (overrides the budget)")
+    parser.add_argument("--swap-budget", type=float, default=float(TARGET_RATIO),
+                        help="random-swap time in multiples of greedy's [default: %(default)s]")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
     if args.quick:
-        args.scales, args.n_tx, args.swap_steps = "37:32", 256, 30000
+        args.scales, args.n_tx, args.swap_budget = "37:32", 256, 10.0
     scales = [tuple(int(v) for v in item.split(":")) for item in args.scales.split(",")]
     load_start = round(os.getloadavg()[0], 2)
-    runs = [run_scale(d, k, args.n_tx, args.n_s, args.swap_steps, args.seed) for d, k in scales]
+    runs = [run_scale(d, k, args.n_tx, args.n_s, args.swap_steps, args.swap_budget, args.seed) for d, k in scales]
     print(f"{'basis':34s} {'n_s':>5s} {'greedy s':>9s} {'kappa_g':>8s} {'swap kappa':>10s} {'ratio':>8s}",
           file=sys.stderr)
     for run in runs:
@@ -109,9 +147,12 @@ def main() -> int:
         "machine": f"{platform.node()} {os.cpu_count()} cores",
         "command": "python " + " ".join(sys.argv),
         "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
-        "swap_steps": args.swap_steps, "runs": runs,
-        "target": "ratio_at_equal_kappa >= 10 and kappa_greedy <= kappa_swap at every scale",
+        "swap_steps": args.swap_steps, "swap_budget": args.swap_budget, "runs": runs,
+        "target": f"ratio_at_equal_kappa >= {TARGET_RATIO} and kappa_greedy <= kappa_swap at every scale",
         "target_met": all(run["target_met"] for run in runs),
+        "bars": [bar(f"random swap s to greedy's kappa / greedy s, {run['basis']}"
+                     + (" (lower bound)" if run["ratio_is_lower_bound"] else ""), run["ratio_at_equal_kappa"],
+                     f">= {TARGET_RATIO}, kappa_greedy <= kappa_swap", run["target_met"], 21) for run in runs],
         "load_average_1min": {"start": load_start, "end": round(os.getloadavg()[0], 2)},
     }
     print(json.dumps(result, indent=2))

@@ -22,8 +22,10 @@ answer; then the stages run on it as the commands run them (:func:`tasks.ingest.
 * weak scaling: the base workload on 1 worker against the doubled one (2T, 2M) on 2 workers:
   efficiency = t1 / t2 (1.0 is perfect).
 
-All ratios come from one run of this script. Printed as JSON, with the per-chunk figures (seconds per
-view and per material, bytes read and written) and a scheduler probe on 2 workers: ``--scheduler-tasks``
+All ratios come from one run of this script; issue 16 sets no goal for them, so ``"bars"`` records
+the strong speedups and weak efficiencies without one (met None). Printed as JSON, with the per-chunk
+figures (seconds per view and per material, bytes read and written) and a scheduler probe on 2 workers:
+``--scheduler-tasks``
 no-op tasks through the project's submit-and-wait loop (:func:`tasks.compute.run_all`), as many as the
 view tasks of a 200-material ingest (seconds per task, scheduler memory per task).
 
@@ -50,7 +52,7 @@ import yaml
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from _measure import log  # noqa: E402
+from _measure import bar, log  # noqa: E402
 
 
 def slurm_problem() -> str | None:
@@ -213,7 +215,7 @@ def main() -> int:
     if kind == "slurm":
         problem = slurm_problem()
         if problem:
-            print(json.dumps({"benchmark": "scaling", "skipped": f"no Slurm: {problem}"}), flush=True)
+            print(json.dumps({"benchmark": "scaling", "skipped": f"no Slurm: {problem}", "bars": []}), flush=True)
             print(f"bench_scaling: skipped: {problem}", file=sys.stderr)
             return 0
     from tasks.model import ModelSettings, with_k
@@ -265,6 +267,9 @@ def main() -> int:
                          "materials_1x": args.materials, "materials_2x": 2 * args.materials,
                          "tasks": {"ingest": "one per view", "build-db": "two per material (bases, leave-one-out)"}},
             "ratios": ratios, "per_chunk": per_chunk, "runs": per_n,
+            "bars": [bar(f"{command} {name.replace('_', ' ')} on 2 workers", value, "none (recorded)", None, 16)
+                     for command, figures in ratios.items() for name, value in figures.items()
+                     if name != "strong_efficiency"],
         }, indent=2, default=str))
     finally:
         if not args.keep:

@@ -10,6 +10,8 @@ Simulates one material on a pruned ``bonn-dome2`` (first turntable position:
 * ``pairs_per_s`` = rendered light/view pairs (each a 128x128 and a 256x256
   texture plus a raw bracket) per second.
 
+No bar: ``over_disk_write`` is recorded without a goal (``"bars"``, met None).
+
 Usage: ``python benchmarks/bench_simulate.py [--out DIR]``
 """
 
@@ -26,6 +28,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from _measure import bar
 
 
 
@@ -83,6 +86,7 @@ def main() -> int:
         "disk_write_gb_per_s": round(disk / 1e9, 3),
         "over_disk_write": round(rate / disk, 3),
         "pairs_per_s": round(config.build_device().n_lv / result.seconds, 1),
+        "bars": [bar("generation GB/s / disk write GB/s", round(rate / disk, 3), "none (recorded)", None, 2)],
     }
     print(json.dumps(out, indent=2))
     return 0

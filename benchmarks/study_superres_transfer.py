@@ -15,11 +15,16 @@ height map's slope), drawn at 192 and 384 pixels (train seeds 0..n-1, test seeds
 PSNR per image with the reference's maximum as the peak, averaged. One torch thread; about 5
 minutes on 2 cores.
 
-    .venv/bin/python benchmarks/study_superres_transfer.py
+``--residual``: the network learns the residual to bicubic up-sampling instead (its output is added
+to the bicubic image; not the paper's architecture), to see whether a global bicubic skip keeps the
+network's lead across the change of scale.
+
+    .venv/bin/python benchmarks/study_superres_transfer.py [--residual]
 """
 
 from __future__ import annotations
 
+import argparse
 import json
 import time
 
@@ -49,22 +54,31 @@ def aug8(images: list[np.ndarray]) -> np.ndarray:
     return np.ascontiguousarray(np.stack(out))
 
 
-def study(train: np.ndarray, tests: dict[str, np.ndarray], epochs: int = 40) -> dict:
-    """Train 1/4 -> 1/2 on ``train`` (1x images), score both protocols on each test set."""
+def study(train: np.ndarray, tests: dict[str, np.ndarray], epochs: int = 40, residual: bool = False) -> dict:
+    """Train 1/4 -> 1/2 on ``train`` (1x images), score both protocols on each test set.
+
+    ``residual``: train on ``half - bicubic(quarter)`` and add the bicubic image back (a global skip;
+    'scale' normalisation is linear, so the residual is normalised with the LR image's scale)."""
     config = EspcnConfig()
     half = area_downsample(train, 2)
-    low, high = patch_pairs(area_downsample(half, 2), half, normalisation=config.normalisation)
+    quarter = area_downsample(half, 2)
+    target = half[:, :2 * quarter.shape[1], :2 * quarter.shape[2]] - bicubic_upsample(quarter, 2) if residual else half
+    low, high = patch_pairs(quarter, target, normalisation=config.normalisation)
     t0 = time.perf_counter()
     result = train_espcn(low, high, config, TrainingSettings(max_epochs=epochs, seed=0))
     model = load_espcn(result.state, config)
+
+    def network(x: np.ndarray) -> np.ndarray:
+        return bicubic_upsample(x, 2) + upscale(model, x) if residual else upscale(model, x)
+
     out = {"pairs": int(len(low)), "train_s": round(time.perf_counter() - t0, 1)}
     for name, full in tests.items():
         half = area_downsample(full, 2)
         quarter = area_downsample(half, 2)
         scores = {
-            "same_espcn": np.mean([psnr(a, b) for a, b in zip(upscale(model, quarter), half)]),
+            "same_espcn": np.mean([psnr(a, b) for a, b in zip(network(quarter), half)]),
             "same_bicubic": np.mean([psnr(a, b) for a, b in zip(bicubic_upsample(quarter, 2), half)]),
-            "paper_espcn": np.mean([psnr(a, b) for a, b in zip(upscale(model, half), full)]),
+            "paper_espcn": np.mean([psnr(a, b) for a, b in zip(network(half), full)]),
             "paper_bicubic": np.mean([psnr(a, b) for a, b in zip(bicubic_upsample(half, 2), full)]),
         }
         out[name] = {k: round(float(v), 2) for k, v in scores.items()}
@@ -83,13 +97,18 @@ def shaded(cls: str, seeds: range, size: int) -> np.ndarray:
 
 
 def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--residual", action="store_true", help="learn the residual to bicubic (a global skip)")
+    residual = parser.parse_args().residual
     torch.set_num_threads(1)
     photos = {n: getattr(sd, n)().astype(np.float32) / 255.0 + 0.02 for n in SOURCES}
     results = {"photographs": study(aug8([q for im in photos.values() for q in (im[:256, :256], im[:256, 256:])]),
-                                    {n: np.stack([im[256:, :256], im[256:, 256:]]) for n, im in photos.items()})}
+                                    {n: np.stack([im[256:, :256], im[256:, 256:]]) for n, im in photos.items()},
+                                    residual=residual)}
     for cls in ("leather", "cloth"):
         for size, n in ((192, 48), (384, 16)):
-            results[f"{cls} {size}"] = study(shaded(cls, range(n), size), {"test": shaded(cls, range(100, 104), size)})
+            results[f"{cls} {size}"] = study(shaded(cls, range(n), size), {"test": shaded(cls, range(100, 104), size)},
+                                                residual=residual)
     print(json.dumps(results, indent=1))
     print(f"{'images':<22}{'same: ESPCN':>12}{'bicubic':>9}{'paper: ESPCN':>14}{'bicubic':>9}")
     for group, res in results.items():
