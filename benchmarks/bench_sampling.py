@@ -10,9 +10,10 @@ Comparison (issue 5, "the deterministic sampler reaches kappa at most equal
 to the random swap's, at least 10x faster"), per scale, both samplers from
 the same seeded random start:
 
-* greedy: one run of :func:`btfcore.acquisition.sampling.greedy`, seconds ``t_g`` and
+* greedy: one run of :func:`btfcore.acquisition.sampling.greedy`, CPU seconds ``t_g`` (every time here
+  is the process's CPU time, which other work on the machine does not inflate) and
   kappa ``kappa_g``;
-* random swap: for ``--swap-budget`` times greedy's seconds of wall time, in
+* random swap: for ``--swap-budget`` times greedy's seconds, in
   calls of 5,000 trial swaps that each continue from the last selection
   (or exactly ``--swap-steps`` in one call when given), stopping early once
   it reaches greedy's kappa; each call's steps cost the same, so the time at
@@ -47,12 +48,19 @@ from _measure import bar, log
 
 
 TARGET_RATIO = 100
+
+
+def _clock() -> float:
+    """The process's CPU seconds: both samplers are timed in CPU time, which other work on a shared
+    machine does not inflate (run with ``OMP_NUM_THREADS=1``: the samplers then use one thread, and CPU
+    time equals the wall time of an idle machine)."""
+    return time.process_time()
 #: Trial swaps per call of the time-budgeted random swap (:func:`_swap_for`): about 1-3 s each.
 SWAP_CHUNK = 5000
 
 
 def _swap_for(U: np.ndarray, n_s: int, seconds: float, kappa_goal: float, seed: int):
-    """Random swap for ``seconds`` of wall time (or until it reaches ``kappa_goal``), in calls of
+    """Random swap for ``seconds`` of CPU time (or until it reaches ``kappa_goal``), in calls of
     :data:`SWAP_CHUNK` steps, each continuing from the last one's selection (Alg. 1 keeps no other
     state; each call draws from its own seed). Returns the joined result, the seconds it ran and
     the time of every history entry (each chunk's seconds spread evenly over its steps)."""
@@ -62,9 +70,9 @@ def _swap_for(U: np.ndarray, n_s: int, seconds: float, kappa_goal: float, seed: 
 
     history, times, steps, accepted, elapsed, start, part = [], [np.zeros(1)], 0, 0, 0.0, None, None
     while elapsed < seconds:
-        t = time.perf_counter()
+        t = _clock()
         part = random_swap(U, n_s, max_steps=SWAP_CHUNK, seed=seed + steps, start=start)
-        dt = time.perf_counter() - t
+        dt = _clock() - t
         history.append(part.history if not history else part.history[1:])
         times.append(elapsed + dt * np.arange(1, part.steps + 1) / part.steps)
         steps, accepted, elapsed, start = steps + part.steps, accepted + part.accepted, elapsed + dt, part.units
@@ -84,16 +92,16 @@ def run_scale(dirs: int, k: int, n_tx: int, n_s: int | None, swap_steps: int | N
     U = synthetic_log_abrdf_basis(dirs, n_tx, k, seed)
     n_s = n_s or int(round(0.06 * U.shape[0]))
     log(f"basis {U.shape} in {time.perf_counter() - t:.1f} s, n_s = {n_s}")
-    t = time.perf_counter()
+    t = _clock()
     g = greedy(U, n_s, seed=seed)
-    t_g = time.perf_counter() - t
+    t_g = _clock() - t
     log(f"greedy: kappa {g.kappa:.4f} in {t_g:.2f} s ({g.steps} accepted swaps)")
     if swap_steps is None:
         r, t_s, times = _swap_for(U, n_s, swap_budget * t_g, g.kappa, seed)
     else:
-        t = time.perf_counter()
+        t = _clock()
         r = random_swap(U, n_s, max_steps=swap_steps, seed=seed)
-        t_s = time.perf_counter() - t
+        t_s = _clock() - t
         times = np.linspace(0.0, t_s, r.steps + 1)       # every step costs the same
     h = r.history
     step_final = int(np.argmax(h <= h[-1]))
