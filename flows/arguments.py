@@ -80,6 +80,11 @@ def _add_simulation_options(p: argparse.ArgumentParser) -> None:
                    help="cameras with N times the dome's pixels along each axis (a pixel of the dome's camera is "
                         "an N x N block): a larger region of interest, for the super-resolution evaluation "
                         "[default: 1]")
+    p.add_argument("--non-ideal", default=None, metavar="PRESET[,FIELD=VALUE...]",
+                   help="a dome that is not ideal: 'realistic' (VMV §5.1's 10 dB single-light / 0 dB multiplexed "
+                        "gains and one bracket per multiplexed capture, 1 %% LED drift per shot, 0.1 px registration "
+                        "error, 1e-4 hot pixels) and/or FIELD=VALUE overrides, e.g. realistic,led_drift=0.02 "
+                        "(docs/simulator-physics.md, \"A dome that is not ideal\") [default: the ideal dome]")
 
 
 def simulate(p: argparse.ArgumentParser) -> None:
@@ -112,6 +117,24 @@ def import_raw(p: argparse.ArgumentParser) -> None:
                    help="dome calibration file (Device.to_json layout); overrides --device")
     p.add_argument("--out", required=True, metavar="STORE", help="capture store to write (.zarr)")
     p.add_argument("--overwrite", action="store_true", help="replace a finished store at --out")
+    _strict_brackets(p)
+
+
+def _strict_brackets(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--strict-brackets", action="store_true",
+                   help="fail on a bracket whose frames do not scale with their exposure times (default: a WARNING "
+                        "line and the report's bracket_warnings)")
+
+
+def import_images(p: argparse.ArgumentParser) -> None:
+    """The arguments of ``btf import-images``."""
+    import_raw(p)
+    p.add_argument("--response-method", choices=("debevec", "robertson"), default="debevec",
+                   help="camera response calibration and HDR merge: Debevec & Malik or Robertson et al. "
+                        "[default: debevec]")
+    p.add_argument("--response", default=None, metavar="FILE",
+                   help="the camera's inverse response (.npy, .json or .csv/.txt: one row per code of 1 or 3 "
+                        "numbers, R, G, B) instead of calibrating it from the brackets")
 
 
 def ingest(p: argparse.ArgumentParser) -> None:
@@ -208,6 +231,11 @@ def evaluate(p: argparse.ArgumentParser) -> None:
                    help="acquisition: materials (one per class, structured classes first) whose reconstructions "
                         "are rendered and scored by rendering PSNR; each adds one reconstruction store per "
                         "strategy and its renderings [default: 1]")
+    p.add_argument("--non-ideal", default=None, metavar="PRESET[,FIELD=VALUE...]",
+                   help="acquisition: measure under a dome that is not ideal: 'realistic' (VMV §5.1's gains and "
+                        "single exposure of the multiplexed captures, 1 %% LED drift, 0.1 px registration error, "
+                        "1e-4 hot pixels) and/or FIELD=VALUE overrides (docs/simulator-physics.md, \"A dome that is "
+                        "not ideal\") [default: the ideal dome]")
     p.add_argument("--report", default="report.json", metavar="PATH",
                    help="where to write the metrics [default: report.json]")
     from flows.superres_cli import add_evaluate_superres_arguments

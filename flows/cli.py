@@ -35,6 +35,8 @@ from flows.acquisition_cli import (PLAN_HELP, RENDER_HELP, SAMPLE_HELP, add_plan
                                    add_sample_arguments, run_plan, run_render, run_sample)
 from flows.bonn_cli import (EXPORT_HELP, IMPORT_HELP, add_export_arguments, add_import_arguments, import_btf_flow,
                             prepare_import, run_export)
+from flows.import_cli import (IMPORT_IMAGES_DESCRIPTION, import_images_cli_flow, import_raw_cli_flow,
+                              prepare_import_images, prepare_import_raw)
 from flows.progress import say
 from flows.server import CHILD_ENV, SERVER_HELP, add_server_arguments, run_server
 from flows.superres_cli import (SUPERRES_HELP, add_superres_arguments, evaluate_superres_flow, prepare_superres,
@@ -161,24 +163,12 @@ def _simulation_config(args: argparse.Namespace):
                   camera_scale=args.camera_scale)
     if args.classes:
         kwargs["classes"] = tuple(c.strip() for c in args.classes.split(",") if c.strip())
+    if getattr(args, "non_ideal", None):
+        kwargs["non_ideal"] = _non_ideal(args.non_ideal)
     if getattr(args, "plan", None):
         from tasks.plan import read_plan
         kwargs["plan"] = read_plan(args.plan)           # validated against the device by SimulationConfig
     return SimulationConfig(**kwargs)
-
-
-def _calibration(args: argparse.Namespace):
-    from btfcore.dome import Device, get_device
-
-    if args.calibration:
-        try:
-            return Device.from_json(json.loads(Path(args.calibration).read_text()))
-        except (OSError, ValueError, KeyError, TypeError) as exc:  # ValueError: bad JSON, NaN/Inf, bad geometry
-            raise ValueError(f"{args.calibration}: not a valid dome calibration ({exc}); fix the file or "
-                             "write it again with Device.to_json") from None
-    if not args.device:
-        raise ValueError("give the dome calibration: --device NAME or --calibration FILE.json")
-    return get_device(args.device)
 
 
 def _export_exr(args: argparse.Namespace) -> int:
@@ -203,10 +193,21 @@ def _evaluation_config(args: argparse.Namespace):
     """``btf evaluate acquisition``'s :class:`tasks.evaluate_acquisition.EvaluationConfig` (bad input raises)."""
     if not args.db or not args.out:
         raise ValueError("give --db TRUTH_DB_DIR and --out DIR")
+    from btfcore.simulate.nonideal import IDEAL
     from tasks.evaluate_acquisition import EvaluationConfig
     return EvaluationConfig(device=args.eval_device, n_turntable=args.eval_turntable, texture_size=args.eval_texture,
                             materials_per_class=args.eval_materials_per_class, seed=args.eval_seed,
-                            render_materials=args.eval_render)
+                            render_materials=args.eval_render,
+                            non_ideal=_non_ideal(args.non_ideal) if args.non_ideal else IDEAL)
+
+
+def _non_ideal(text: str):
+    """``--non-ideal``'s :class:`btfcore.simulate.nonideal.DomeNonIdeality` (bad input raises, naming the option)."""
+    from btfcore.simulate.nonideal import parse_non_ideal
+    try:
+        return parse_non_ideal(text)
+    except ValueError as exc:
+        raise ValueError(f"--non-ideal {text}: {exc}") from None
 
 
 def _evaluate(args: argparse.Namespace) -> int:
@@ -323,19 +324,6 @@ def _prepare_reconstruct(args: argparse.Namespace, prepared: dict) -> None:
                  load_calibration(args.white, args.white_albedo, args.colour_matrix))
 
 
-def _prepare_import_raw(args: argparse.Namespace, prepared: dict) -> None:
-    from tasks.ingest_raw import plan_raw_import, raw_import_metadata
-    from tasks.staging import refuse_inputs_as_outputs
-    from tasks.stores import check_capture_target
-
-    prepared["device"] = _calibration(args)
-    prepared["plan"] = plan_raw_import(args.folder, args.manifest)   # every problem listed at once
-    refuse_inputs_as_outputs({"--out": args.out}, {f"raw file {p.name}": p for p in prepared["plan"].files.values()})
-    meta = raw_import_metadata(prepared["plan"], prepared["device"])
-    if not args.overwrite:
-        check_capture_target(args.out, meta)
-
-
 def _prepare_resample(args: argparse.Namespace, prepared: dict) -> None:
     from tasks.resample import check_inputs
 
@@ -406,13 +394,6 @@ def _resample_flow(args: argparse.Namespace, address: str, prepared: dict) -> di
                          progress=not args.no_progress)
 
 
-def _import_raw_flow(args: argparse.Namespace, address: str, prepared: dict) -> dict:
-    from flows.ingest import import_raw_flow
-
-    return import_raw_flow(args.folder, args.manifest, prepared["device"], args.out, address,
-                           overwrite=args.overwrite, plan=prepared["plan"])
-
-
 def _simulate_flow(args: argparse.Namespace, address: str, prepared: dict) -> dict:
     from flows.simulate import simulate_flow
 
@@ -459,8 +440,13 @@ COMMANDS: dict[str, Command] = {command.name: command for command in (
                         "JSON list of such objects) maps each file to its place; exposure times missing from it are "
                         "read from the files. Everything is checked first and every problem is listed before any "
                         "work starts.",
-            add_arguments=arguments.import_raw, prepare=_prepare_import_raw, flow=_import_raw_flow,
+            add_arguments=arguments.import_raw, prepare=prepare_import_raw, flow=import_raw_cli_flow,
             inputs={"folder": "FOLDER", "manifest": "--manifest", "calibration": "--calibration"}),
+    Command("import-images", help="import 8- or 16-bit TIFF, PNG or JPEG brackets of a non-linear camera",
+            description=IMPORT_IMAGES_DESCRIPTION,
+            add_arguments=arguments.import_images, prepare=prepare_import_images, flow=import_images_cli_flow,
+            inputs={"folder": "FOLDER", "manifest": "--manifest", "calibration": "--calibration",
+                    "response": "--response"}),
     Command("ingest", help="capture store -> BTF store (HDR, demosaic, rectify, demultiplex)",
             description="Process every view of a capture store: merge the exposure brackets in the Bayer domain, "
                         "demosaic, rectify the sample to the texture and demultiplex the illumination patterns. "

@@ -1,4 +1,5 @@
-"""Prefect flows of the ingest side: ``btf import-raw`` (raw files -> capture store)."""
+"""Prefect flows of the ingest side: ``btf import-raw`` (raw files -> capture store), ``btf import-images``
+(LDR image brackets -> capture store) and ``btf ingest``."""
 
 from __future__ import annotations
 
@@ -14,24 +15,54 @@ from tasks.ingest_raw import RawImportPlan, import_raw, plan_raw_import
 
 @task(name="import-raw-files", **RETRY_ONCE, cache_policy=NO_CACHE)
 def import_raw_stage(folder: str, manifest: str, device: Device, out: str, scheduler_address: str,
-                     overwrite: bool, plan: RawImportPlan | None = None) -> dict[str, Any]:
+                     overwrite: bool, plan: RawImportPlan | None = None, strict_brackets: bool = False
+                     ) -> dict[str, Any]:
     from distributed import Client
 
     if plan is None:
         plan = plan_raw_import(folder, manifest)  # every problem listed before any work
     with Client(scheduler_address, set_as_default=False) as client:
-        store = import_raw(plan, device, out, client, overwrite=overwrite,
+        store = import_raw(plan, device, out, client, overwrite=overwrite, strict_brackets=strict_brackets,
                            provenance={"manifest": str(manifest), "folder": str(folder)})
     return {"store": str(out), "shape": list(plan.shape), "frame_shape": list(plan.frame_shape),
-            "bayer_pattern": plan.bayer_pattern, "complete": store.complete}
+            "bayer_pattern": plan.bayer_pattern, "bracket_warnings": store.attrs.get("bracket_warnings", []),
+            "complete": store.complete}
 
 
 @flow(name="btf-import-raw", log_prints=False)
 def import_raw_flow(folder: str, manifest: str, device: Device, out: str, scheduler_address: str,
-                    overwrite: bool = False, plan: RawImportPlan | None = None) -> dict[str, Any]:
+                    overwrite: bool = False, plan: RawImportPlan | None = None,
+                    strict_brackets: bool = False) -> dict[str, Any]:
     """Validate a folder of camera raw files and its manifest (unless ``plan`` is their validated
     :func:`tasks.ingest_raw.plan_raw_import`, as ``btf import-raw`` passes it), then write a capture store."""
-    return import_raw_stage(folder, manifest, device, out, scheduler_address, overwrite, plan)
+    return import_raw_stage(folder, manifest, device, out, scheduler_address, overwrite, plan, strict_brackets)
+
+
+@task(name="import-image-files", **RETRY_ONCE, cache_policy=NO_CACHE)
+def import_images_stage(folder: str, manifest: str, device: Device, out: str, scheduler_address: str,
+                        overwrite: bool, plan: RawImportPlan, method: str, response: str | None,
+                        strict_brackets: bool) -> dict[str, Any]:
+    from distributed import Client
+
+    from tasks.ingest_images import import_images
+
+    with Client(scheduler_address, set_as_default=False) as client:
+        store = import_images(plan, device, out, client, method=method, response_file=response,
+                              overwrite=overwrite, strict_brackets=strict_brackets,
+                              provenance={"manifest": str(manifest), "folder": str(folder)})
+    return {"store": str(out), "shape": list(plan.shape), "frame_shape": list(plan.frame_shape),
+            "bit_depth": int(plan.white_level).bit_length(), "response": store.response[1],
+            "bracket_warnings": store.attrs.get("bracket_warnings", []), "complete": store.complete}
+
+
+@flow(name="btf-import-images", log_prints=False)
+def import_images_flow(folder: str, manifest: str, device: Device, out: str, scheduler_address: str,
+                       plan: RawImportPlan, overwrite: bool = False, method: str = "debevec",
+                       response: str | None = None, strict_brackets: bool = False) -> dict[str, Any]:
+    """Write a capture store from a validated image import (:func:`tasks.ingest_images.plan_image_import`):
+    each camera's response calibrated with ``method`` (or read from ``response``), then the brackets."""
+    return import_images_stage(folder, manifest, device, out, scheduler_address, overwrite, plan, method,
+                               response, strict_brackets)
 
 
 @task(name="radiometric-calibration", cache_policy=NO_CACHE)

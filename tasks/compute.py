@@ -12,6 +12,8 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from typing import Any
 
+from tasks.faults import kill_point
+
 #: ``progress(done, total)``, called after each finished task.
 Progress = Callable[[int, int], None]
 
@@ -48,6 +50,7 @@ def wait_all(futures: Sequence[Any], progress: Progress | None = None,
         done += share.get(future.key, 1)
         if progress is not None:
             progress(done, total)
+        kill_point("chunk-done")
     return [f.result() for f in futures]
 
 

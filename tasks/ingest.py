@@ -56,6 +56,7 @@ from btfcore.capture.demultiplex import demultiplex_operator
 from btfcore.capture.view_chain import IngestSettings, lv_directions, process_view, view_window
 from btfcore.model.colour import REC709_LUMA
 from tasks.compute import run_all
+from tasks.faults import kill_point
 from tasks.measurement import (
     ingest_measurement,
     measurement_error_against_truth,
@@ -287,7 +288,7 @@ def ingest_view(capture_path: str, meta: CaptureMetadata, out_path: str, setting
         return _ingest_plan_view(capture, out_path, settings, t, c, calibration, window)
     win_shape = (window[0].stop - window[0].start, window[1].stop - window[1].start)
     raw = capture.read_raw(t, c, window, out=reused_buffer(
-        "raw", (capture.n_illum, capture.n_exp, *win_shape), capture.raw.dtype))
+        "raw", (capture.n_illum, capture.n_exp, *win_shape, *capture.raw.shape[6:]), capture.raw.dtype))
     roi = reused_buffer("roi", (capture.n_leds, *win_shape, 3), np.float32) if keep_roi else None
     textures, valid = process_view(
         raw, capture.exposure_time[t, c], capture.illumination,
@@ -303,6 +304,14 @@ def view_chain_arguments(capture: CaptureStore, t: int, c: int, window: tuple, s
     ``capture``: its sensor, geometry and dark frames, the settings and the calibration (also used by
     the error floors of :mod:`tasks.floors`, which replace the frames and the dark frames)."""
     meta, sensor = capture.meta, capture.meta.sensor
+    response = capture.response                   # an "RGB" capture of a non-linear camera (btf import-images)
+    if response is not None:
+        return dict(bayer_pattern=None, black_level=0, white_level=meta.white_level,
+                    homography=capture.homography[t, c], texture_shape=tuple(meta.texture_shape),
+                    sample_size_m=meta.sample_size_m, response=response[0][c],
+                    response_method=response[1].get("method", "debevec"), settings=settings,
+                    led_gain=None if calibration is None else calibration.led_gain,
+                    colour_matrix=None if calibration is None else calibration.colour_matrix, window=window)
     return dict(bayer_pattern=meta.bayer_pattern, black_level=meta.black_level, white_level=meta.white_level,
                 homography=capture.homography[t, c], texture_shape=tuple(meta.texture_shape),
                 sample_size_m=meta.sample_size_m, dark_frames=capture.dark_frames[c],
@@ -323,6 +332,7 @@ def _write_view(out_path: str, capture: CaptureStore, t: int, c: int, textures: 
     if roi is not None:
         write_chunk_aligned(group["roi"], slice(row, row + n_leds), roi)
     group["valid_fraction"][t, c] = valid
+    kill_point("chunk-written")
     group["written"][t, c] = 1                                 # marker after the data
 
 

@@ -20,6 +20,12 @@ layouts or levels, missing exposure times or two frames of a bracket at one
 time. The white level is the file's (:func:`file_white_level`). The dome geometry (LED and camera poses,
 turntable angles, homographies) comes from a :class:`Device` calibration whose
 region of interest is set to the files' size.
+
+While a view is written, each bracket is checked to scale with its exposure times
+(:func:`bracket_flags`, docs/raw-import.md, "Bracket consistency"): flagged brackets are listed in
+the store's ``bracket_warnings`` or, with ``strict_brackets``, fail the import. The manifest check
+and the writer also serve :mod:`tasks.ingest_images` (LDR image brackets), which passes its own
+file probe, frame reader and camera responses.
 """
 
 from __future__ import annotations
@@ -33,9 +39,11 @@ from typing import Any, Callable
 
 import numpy as np
 
-from btfcore.dome import Device
+from btfcore.capture.hdr import exposure_ratios
+from btfcore.dome import BAYER_PATTERNS, Device
 from tasks.compute import run_all
 from tasks.stores import CaptureMetadata, CaptureStore, create_capture_store, open_capture_store
+from tasks.stores.common import to_json_attr
 
 MANIFEST_COLUMNS = ("file", "turntable", "camera", "illumination", "exposure")
 _INDEX_COLUMNS = MANIFEST_COLUMNS[1:]
@@ -259,8 +267,9 @@ def identify_image_file(path: str | os.PathLike) -> str | None:
     return None
 
 
-NOT_RAW_ADVICE = ("the raw path needs camera raw files (DNG or a format LibRaw reads); brackets of "
-                  "8- or 16-bit TIFF, PNG or JPEG images are not supported yet — give the camera's raw files")
+NOT_RAW_ADVICE = ("the raw path needs camera raw files (DNG or a format LibRaw reads); import brackets of "
+                  "8- or 16-bit TIFF, PNG or JPEG images with `btf import-images` (same manifest), which "
+                  "calibrates the camera's response")
 
 
 def probe_raw_file(path: str | os.PathLike) -> RawFrameInfo:
@@ -340,9 +349,24 @@ def _sort_brackets(manifest: str | os.PathLike, folder: Path,
     return files
 
 
+def raw_unreadable(where: str, path: Path, exc: Exception) -> str:
+    """The problem of a file LibRaw cannot read: an image named as such (and the command that takes it),
+    anything else as corrupt, truncated or foreign."""
+    kind = identify_image_file(path)
+    if kind is not None:
+        return f"{where}: {kind}, not a camera raw file (LibRaw cannot read it: {type(exc).__name__}); {NOT_RAW_ADVICE}"
+    return (f"{where}: LibRaw cannot read it ({type(exc).__name__}: {exc}); "
+            "the file is corrupt, truncated or not a camera raw file — re-copy it from the camera")
+
+
 def plan_raw_import(folder: str | os.PathLike, manifest: str | os.PathLike,
-                    probe: Callable[[Path], RawFrameInfo] = probe_raw_file) -> RawImportPlan:
-    """Check a folder and manifest completely; raise :class:`RawImportError` listing every problem."""
+                    probe: Callable[[Path], RawFrameInfo] = probe_raw_file,
+                    unreadable: Callable[[str, Path, Exception], str] = raw_unreadable) -> RawImportPlan:
+    """Check a folder and manifest completely; raise :class:`RawImportError` listing every problem.
+
+    ``probe`` reads one file's layout and levels and ``unreadable`` words the problem of a file it
+    cannot read: LibRaw's by default, :mod:`tasks.ingest_images`' for LDR images (the one manifest
+    check serves both imports)."""
     folder = Path(folder)
     rows, problems = read_manifest(manifest)
     infos: dict[Path, RawFrameInfo] = {}
@@ -351,6 +375,10 @@ def plan_raw_import(folder: str | os.PathLike, manifest: str | os.PathLike,
     for row in rows:
         path = folder / row.file
         where = f"{manifest}:{row.line} ({row.file})"
+        if Path(row.file).is_absolute() or ".." in Path(row.file).parts:
+            problems.append(f"{where}: names a file outside {folder}; a manifest names files inside FOLDER, "
+                            "relative to it: copy or move the file into the folder")
+            continue
         if path in seen_files:
             problems.append(f"{where}: the same file is also listed on line {seen_files[path]}; list each file once")
         seen_files.setdefault(path, row.line)
@@ -367,13 +395,7 @@ def plan_raw_import(folder: str | os.PathLike, manifest: str | os.PathLike,
         try:
             infos[path] = probe(path)
         except Exception as exc:  # LibRaw raises many kinds for corrupt, truncated or foreign files
-            kind = identify_image_file(path)
-            if kind is not None:
-                problems.append(f"{where}: {kind}, not a camera raw file (LibRaw cannot read it: "
-                                f"{type(exc).__name__}); {NOT_RAW_ADVICE}")
-                continue
-            problems.append(f"{where}: LibRaw cannot read it ({type(exc).__name__}: {exc}); "
-                            "the file is corrupt, truncated or not a camera raw file — re-copy it from the camera")
+            problems.append(unreadable(where, path, exc))
     frames = [r for r in rows if r.role == "frame"]
     if not frames:
         problems.append(f"{manifest}: no frame rows; nothing to import")
@@ -453,7 +475,9 @@ def calibrated_device(device: Device, plan: RawImportPlan) -> Device:
         raise RawImportError([p + "; pass the calibration of the dome that took these files" for p in problems])
     return device.with_overrides(turntable_angle_deg=device.turntable_angle_deg[:n_turn],
                                  camera_indices=list(range(n_cam)), led_indices=list(range(n_illum)),
-                                 roi_shape=plan.frame_shape, bayer_pattern=plan.bayer_pattern)
+                                 roi_shape=plan.frame_shape,
+                                 bayer_pattern=plan.bayer_pattern if plan.bayer_pattern in BAYER_PATTERNS
+                                 else device.sensor.bayer_pattern)   # an image import's "RGB" is the store's
 
 
 def import_metadata(plan: RawImportPlan, device: Device, provenance: dict[str, Any]) -> CaptureMetadata:
@@ -500,37 +524,128 @@ def raw_import_metadata(plan: RawImportPlan, device: Device, provenance: dict[st
     return import_metadata(plan, device, provenance)
 
 
-def import_view(store_path: str, meta: CaptureMetadata, plan: RawImportPlan, t: int, c: int) -> tuple[int, int]:
-    """Read one view's brackets from their files and write them (owning whole chunks) into the store the
-    driver created with ``meta`` (:meth:`CaptureStore.reopen`)."""
+#: A bracket is flagged when two consecutive frames brighten by a factor that differs from the ratio of
+#: their exposure times by more than this, either way (docs/raw-import.md, "Bracket consistency").
+BRACKET_RATIO_TOLERANCE = 1.25
+#: Samples used for the ratios: at least this fraction of the range above black (out of the read noise)
+#: and below :data:`_USABLE_HIGH` of it (clear of saturation and a response's flat top).
+_USABLE_LOW, _USABLE_HIGH = 0.02, 0.95
+
+
+def bracket_signal(frames: np.ndarray, black_level: float, white_level: float,
+                   response: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """One bracket linearised for :func:`btfcore.capture.hdr.exposure_ratios`: ``(signal, usable)``.
+
+    ``frames`` are ``(n_exp, rows, cols)`` raw DN (signal: minus the black level) or, with a camera
+    ``response`` ``(n_codes, 3)``, ``(n_exp, rows, cols, 3)`` codes (signal: the response's value).
+    Usable: between 2 % and 95 % of the range from black to white."""
+    span = float(white_level) - float(black_level)
+    usable = (frames >= black_level + _USABLE_LOW * span) & (frames <= black_level + _USABLE_HIGH * span)
+    if response is None:
+        return frames.astype(np.float32) - np.float32(black_level), usable
+    return response[frames.astype(np.intp), np.arange(frames.shape[-1])], usable    # I(z) per channel
+
+
+def bracket_flags(signal: np.ndarray, usable: np.ndarray, exposure_time: np.ndarray,
+                  bracket: tuple[int, int, int]) -> list[dict[str, Any]]:
+    """The consecutive frame pairs of one bracket whose brightness ratio is off their exposure-time ratio
+    by more than :data:`BRACKET_RATIO_TOLERANCE` (pairs without 64 usable samples are not judged)."""
+    measured, expected, n_px = exposure_ratios(signal, usable, exposure_time)
+    flags = []
+    for j, (m, e, n) in enumerate(zip(measured, expected, n_px)):
+        if np.isfinite(m) and abs(np.log(m / e)) > np.log(BRACKET_RATIO_TOLERANCE):
+            flags.append({"bracket": [int(v) for v in bracket], "frames": [j, j + 1],
+                          "measured_ratio": round(float(m), 4), "expected_ratio": round(float(e), 4),
+                          "pixels": int(n)})
+    return flags
+
+
+def bracket_flag_text(flag: dict[str, Any]) -> str:
+    """One line saying what is wrong with a flagged bracket and what to check."""
+    t, c, i = flag["bracket"]
+    j, k = flag["frames"]
+    return (f"bracket (turntable, camera, illumination) = ({t}, {c}, {i}): exposures {j} and {k} (sorted by time) "
+            f"brighten by {flag['measured_ratio']:.3g}x where their exposure times say "
+            f"{flag['expected_ratio']:.3g}x (median over {flag['pixels']} pixels); check the manifest's times "
+            "and files for this bracket (one file listed twice, a wrong row) and whether the light flickered")
+
+
+class BracketConsistencyError(ValueError):
+    """Brackets whose frames do not scale with their exposure times, with ``--strict-brackets``."""
+
+
+def view_bracket_flags(frames: Any, meta: CaptureMetadata, plan: RawImportPlan, t: int, c: int,
+                       response: np.ndarray | None = None) -> list[dict[str, Any]]:
+    """:func:`bracket_flags` of every bracket of view ``(t, c)``; ``frames[i]`` is illumination ``i``'s
+    bracket as read from its files (or, for a view an earlier run wrote, from the store: the same codes)."""
+    _, _, n_illum, n_exp = plan.shape
+    flags: list[dict[str, Any]] = []
+    if n_exp > 1:
+        for i in range(n_illum):
+            signal, usable = bracket_signal(np.asarray(frames[i]), meta.black_level, meta.white_level, response)
+            flags += bracket_flags(signal, usable, plan.exposure_time[t, c, i], (t, c, i))
+    return flags
+
+
+def import_view(store_path: str, meta: CaptureMetadata, plan: RawImportPlan, t: int, c: int,
+                read_frame: Callable[[Path], np.ndarray] = read_raw_frame, response: np.ndarray | None = None,
+                strict: bool = False) -> tuple[int, int, list[dict[str, Any]]]:
+    """Read one view's brackets from their files, check that each scales with its exposure times
+    (:func:`bracket_flags`) and write them (owning whole chunks) into the store the driver created with
+    ``meta`` (:meth:`CaptureStore.reopen`). ``response`` is the camera's ``(n_codes, 3)`` response of an
+    image import. Returns ``(t, c, flags)``; with ``strict`` a flagged view raises
+    :class:`BracketConsistencyError` before anything of it is written."""
     store = CaptureStore.reopen(store_path, meta, "r+")
     _, _, n_illum, n_exp = plan.shape
-    frames = np.stack([np.stack([read_raw_frame(plan.files[(t, c, i, e)]) for e in range(n_exp)])
+    frames = np.stack([np.stack([read_frame(plan.files[(t, c, i, e)]) for e in range(n_exp)])
                        for i in range(n_illum)])
+    flags = view_bracket_flags(frames, meta, plan, t, c, response)
+    if strict and flags:
+        raise BracketConsistencyError("; ".join(bracket_flag_text(f) for f in flags)
+                                      + " (--strict-brackets; leave it out to import with a warning)")
     store.write_bracket(t, c, frames, plan.exposure_time[t, c])
-    return t, c
+    return t, c, flags
 
 
 def import_raw(plan: RawImportPlan, device: Device, out: str | os.PathLike, client: Any = None, *,
-               provenance: dict[str, Any] | None = None, overwrite: bool = False) -> CaptureStore:
+               provenance: dict[str, Any] | None = None, overwrite: bool = False, strict_brackets: bool = False,
+               meta: CaptureMetadata | None = None, read_frame: Callable[[Path], np.ndarray] = read_raw_frame,
+               responses: np.ndarray | None = None, response_info: dict[str, Any] | None = None) -> CaptureStore:
     """Write a validated raw import into a capture store, one view per task.
 
     With a ``distributed.Client`` the views run on the cluster; without, here.
-    A rerun resumes with the views not yet written.
+    A rerun resumes with the views not yet written. Brackets whose frames do not scale with their
+    exposure times are listed in the store's root attribute ``bracket_warnings`` (of every view: those
+    an earlier, killed run wrote are judged again from the store; :func:`bracket_flags`), or with
+    ``strict_brackets`` fail the import.
+    :mod:`tasks.ingest_images` passes its own ``meta``, ``read_frame`` and the cameras' ``responses``
+    ``(n_cam, n_codes, 3)`` (written to the store with ``response_info``).
     """
-    meta = raw_import_metadata(plan, device, provenance)
+    meta = raw_import_metadata(plan, device, provenance) if meta is None else meta
     store = create_capture_store(out, meta, overwrite=overwrite)
+    if responses is not None:
+        store.write_response(responses, response_info or {})
     if plan.darks:
-        store.write_dark_frames(np.stack([np.stack([read_raw_frame(p) for _, p in plan.darks[c]])
+        store.write_dark_frames(np.stack([np.stack([read_frame(p) for _, p in plan.darks[c]])
                                           for c in range(plan.shape[1])]))
     else:
         level = np.full((plan.shape[1], 1, *plan.frame_shape), meta.black_level, dtype=np.uint16)
         store.write_dark_frames(level)
-    args = [(str(out), store.meta, plan, t, c) for t, c in store.pending_views()]
+    pending = store.pending_views()
+    args = [(str(out), store.meta, plan, t, c, read_frame, None if responses is None else responses[c],
+             strict_brackets) for t, c in pending]
     if client is None:
-        for a in args:
-            import_view(*a)
+        results = [import_view(*a) for a in args]
     else:
-        run_all(client, import_view, args)
+        results = run_all(client, import_view, args)
+    flags = [f for _, _, view_flags in results for f in view_flags]
+    # views an earlier, killed run wrote: their flags again from the stored codes, so that a resumed
+    # import lists what an uninterrupted one does
+    written = store.written == 1
+    for t, c in sorted({(int(t), int(c)) for t, c in np.argwhere(written.all(axis=2))} - set(pending)):
+        frames = [store.read_bracket(t, c, i)[0] for i in range(plan.shape[2])]
+        flags += view_bracket_flags(frames, store.meta, plan, t, c, None if responses is None else responses[c])
+    flags.sort(key=lambda f: (f["bracket"], f["frames"]))
+    store.group.attrs.update(to_json_attr({"bracket_warnings": flags}))
     store.mark_complete()
     return open_capture_store(out)

@@ -31,6 +31,7 @@ from btfcore.acquisition.plan import CapturePlan
 from btfcore.capture.demultiplex import demultiplex_operator
 from btfcore.capture.view_chain import IngestSettings, process_view, view_window
 from tasks.compute import run_all
+from tasks.faults import kill_point
 from tasks.staging import commit_staged
 from tasks.stores import CaptureMetadata, CaptureStore, bracket_steps, open_capture_store
 from tasks.stores.measurement import (
@@ -192,6 +193,7 @@ def ingest_block(capture_path: str, meta: CaptureMetadata, out_path: str, settin
         textures[sel], valid[sel] = process_brackets(frames, et, capture, t, c, settings, window)
     group["measured"][r0:r1] = textures              # whole chunks: the block's rows x every band
     group["valid_fraction_rows"][r0:r1] = valid
+    kill_point("chunk-written")
     group["written"][block] = 1                       # marker after the data
     return block
 

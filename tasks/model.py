@@ -49,6 +49,7 @@ from btfcore.model.colour import to_log_yuv
 from btfcore.model.eigenspace_merging import merge_eigenspaces
 from btfcore.model.truncated_svd import truncated_svd
 from tasks.compute import run_all
+from tasks.faults import kill_point
 from tasks.integrity import create_array
 from tasks.staging import begin_store, finish_store
 from tasks.stores import to_json_attr
@@ -330,6 +331,7 @@ def write_basis(group: zarr.Group, where: str, model: TruncatedSVD, key: str, **
     for name, data in (("U", model.U), ("sigma", model.sigma)):
         create_array(sub, name, shape=data.shape, dtype="float64", chunks=data.shape, compressors=None,
                          overwrite=True)[...] = data
+    kill_point("chunk-written")
     sub.attrs.put(to_json_attr({"method": model.method, "settings": model.settings, "norm_sq": model.norm_sq,
                                 "iterations": model.iterations, "converged": bool(model.converged),
                                 "energy_captured": model.energy_captured, **attrs, "key": key}))

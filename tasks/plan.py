@@ -17,12 +17,15 @@ import csv
 import io
 import json
 import math
+import re
 from pathlib import Path
 from typing import Any
 
+from btfcore.acquisition.hadamard import is_s_matrix_order, s_matrix
 from btfcore.acquisition.plan import PLAN_SCHEMA, CapturePlan, Shot, validate_plan
 from btfcore.dome import Device
 from btfcore.acquisition.time_model import TimeModelParams, predict_time
+from tasks.faults import kill_point
 
 __all__ = ["CSV_COLUMNS", "plan_to_csv_text", "read_plan", "read_plan_json", "write_plan"]
 
@@ -104,6 +107,7 @@ def write_plan(plan: CapturePlan, path_json: str | Path, path_csv: str | Path | 
     path_json.parent.mkdir(parents=True, exist_ok=True)
     tmp = path_json.with_name(path_json.name + ".tmp")
     tmp.write_text(json.dumps(doc, indent=1))
+    kill_point("file-replace")
     tmp.replace(path_json)
     if path_csv is not None:
         path_csv = Path(path_csv)
@@ -174,6 +178,24 @@ def _read_csv(path: Path) -> CapturePlan:
         raise ValueError(f"{path}: {exc}") from None
 
 
+def _check_s_matrix_orders(plan: CapturePlan, path: Path) -> None:
+    """Refuse a multiplexed group (``"S19"``, ``"q2-S47"``) or ``s_matrix_order`` parameter whose S-matrix
+    order does not exist (a prime with n % 4 == 3; VMV §3.2), naming the file, the first shot and the fix."""
+    orders = [(f"shot {i} (group {shot.group!r})", int(m.group(1))) for i, shot in enumerate(plan.shots)
+              if (m := re.search(r"(?:^|-)S(\d+)$", shot.group))]
+    if isinstance(plan.parameters.get("s_matrix_order"), int):
+        orders.append(("parameters.s_matrix_order", plan.parameters["s_matrix_order"]))
+    for where, n in orders:
+        if not is_s_matrix_order(n):
+            why = f"no S-matrix of order {n}"
+            try:
+                s_matrix(n)                      # its message names why and the nearest valid orders
+            except ValueError as exc:
+                why = str(exc).split(" (use ")[0]
+            raise ValueError(f"{path}: {where}: {why}; write the plan again with `btf plan`, which picks the "
+                             "order for the device's LEDs")
+
+
 def read_plan(path: str | Path, device: Device | None = None) -> CapturePlan:
     """Read a plan written by :func:`write_plan`, from its JSON or its CSV.
 
@@ -204,6 +226,7 @@ def read_plan(path: str | Path, device: Device | None = None) -> CapturePlan:
         plan = _read_csv(path)
     else:
         raise ValueError(f"{path}: plan files end in .json or .csv, not {suffix or 'nothing'}")
+    _check_s_matrix_orders(plan, path)
     if device is not None:
         try:
             validate_plan(plan, device)

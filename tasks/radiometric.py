@@ -132,7 +132,8 @@ def led_gains_from_white(white_path: str | os.PathLike, albedo: float = WHITE_AL
             per_view[v] = led_calibration(chunk, light_dir[rows], albedo)
         except ValueError as exc:
             raise ValueError(f"{white_path}: btf rows {rows.start}-{rows.stop - 1} (turntable {v // n_cam}, "
-                             f"camera {v % n_cam}): {exc}") from None
+                             f"camera {v % n_cam}): {exc}; check that view's frames and dark frames, or capture "
+                             "the white standard again with every LED lighting it") from None
         spread[v], chroma_spread[v], chromaticity[v] = white_texture_statistics(chunk)
     stats = white_standard_statistics(spread, chroma_spread, chromaticity)
     check_white_standard(white_path, stats)

@@ -69,6 +69,7 @@ from btfcore.acquisition.reconstruct import (
     texture_variance,
 )
 from tasks.compute import run_all
+from tasks.faults import kill_point
 from tasks.staging import commit_staged, finish_interrupted_commit, staging_path, store_attrs
 from tasks.stores.btf import LV_ORDER, SCHEMA_NAME, SCHEMA_VERSION, BtfStore, create_btf_store, open_btf_store
 from tasks.stores.btf import band_rows as btf_band_rows
@@ -224,6 +225,11 @@ def _basis(model: zarr.Group, cls: str, name: str, k: int | None, model_path: An
         raise ValueError(f"{model_path}: no basis {where} in the model store (classes: {', '.join(classes) or 'none'}); "
                          "choose --class from them, or build the model with that class") from None
     U, sigma = np.asarray(fit.U, dtype=np.float64), np.asarray(fit.sigma, dtype=np.float64)
+    for part, a in (("U", U), ("sigma", sigma)):
+        bad = np.argwhere(~np.isfinite(a))
+        if bad.size:
+            raise ValueError(f"{model_path}: {where}/{part}{bad[0].tolist()} = {float(a[tuple(bad[0])])!r} is not "
+                             "finite; rebuild the model with `btf build-db`")
     if k is not None:
         if k > U.shape[1]:
             raise ValueError(f"{model_path}: {where} has {U.shape[1]} basis vectors, k={k} asked; choose k <= "
@@ -406,16 +412,25 @@ def reconstruct_band(in_path: str, out_path: str, ops: dict[str, SolveOperator],
     r0, r1 = bands[band]
     h = arr.shape[1]
     p = ops["y"].patch_size if "y" in ops else None
+    rows = abtf_halo(r0, r1, h, p) if p is not None else slice(r0, r1)
+    measured = np.asarray(arr[:, rows])
+    finite = np.isfinite(measured)
+    if not finite.all():                                # named in the input's own indices, not the solve's
+        first = tuple(int(v) for v in np.argwhere(~finite)[0])
+        idx = [first[0], first[1] + rows.start, *first[2:]]
+        raise ValueError(f"{in_path}: {arr.basename}{idx} = {float(measured[first])!r} "
+                         f"({int(measured.size - finite.sum())} NaN/Inf values in texture rows {rows.start}:"
+                         f"{rows.stop}); write the input again with `btf ingest` (or the command that wrote it)")
     if p is not None:
-        halo = abtf_halo(r0, r1, h, p)
-        out = reconstruct_chunk(ops, np.asarray(arr[:, halo]), out_rows=(r0, r1), height=h, correction=correction)
+        out = reconstruct_chunk(ops, measured, out_rows=(r0, r1), height=h, correction=correction)
     else:
-        out = reconstruct_chunk(ops, np.asarray(arr[:, r0:r1]), correction=correction)
+        out = reconstruct_chunk(ops, measured, correction=correction)
     if not np.isfinite(out).all():
         raise ValueError(f"{in_path}: the reconstruction of texture rows {r0}:{r1} is not finite (a log basis "
                          "extrapolated beyond the float range); use --method tikhonov or --basis als")
     dst = BtfStore(out_path, "r+").group
     dst["btf"][:, r0:r1] = out
+    kill_point("chunk-written")
     dst["written"][band] = 1
     return band
 

@@ -26,6 +26,7 @@ from btfcore.render.btf_render import (
     surface_geometry,
     to_srgb8,
 )
+from tasks.faults import kill_point
 from tasks.stores.btf import open_btf_store
 
 __all__ = ["Rendering", "load_env_map", "read_btf_store", "render_store", "write_png"]
@@ -89,7 +90,8 @@ def load_env_map(path: str | os.PathLike) -> np.ndarray:
         with OpenEXR.File(str(p)) as f:
             channels = {name: np.asarray(ch.pixels) for name, ch in f.channels().items()}
     except Exception as exc:  # OpenEXR raises plain Exception/RuntimeError on bad files
-        raise ValueError(f"{p} is not a readable OpenEXR file ({exc})") from None
+        raise ValueError(f"{p} is not a readable OpenEXR file ({exc}); give a latitude-longitude HDR map in "
+                         "OpenEXR format, or forest, sky or studio") from None
     if "RGB" in channels and channels["RGB"].ndim == 3:
         env = channels["RGB"][..., :3]
     elif all(c in channels for c in "RGB"):
@@ -120,7 +122,8 @@ def read_btf_store(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.
     FileNotFoundError
         When nothing is at ``path``.
     ValueError
-        When it is not a finished BTF store or its arrays do not fit together.
+        When it is not a finished BTF store, its arrays do not fit together or ``btf``
+        holds NaN/Inf (the message names the store and the first index).
 
     Notes
     -----
@@ -128,7 +131,14 @@ def read_btf_store(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.
     UBO2014-sampled 64 x 64 store).
     """
     store = open_btf_store(path, produced_by="`btf ingest` or `btf resample`")
-    return np.asarray(store.btf[...], dtype=np.float32), store.light_dir, store.view_dir, store.attrs
+    btf = np.asarray(store.btf[...], dtype=np.float32)
+    finite = np.isfinite(btf)
+    if not finite.all():
+        idx = [int(v) for v in np.argwhere(~finite)[0]]
+        raise ValueError(f"{path}: btf{idx} = {float(btf[tuple(idx)])!r} ({int(btf.size - finite.sum())} NaN/Inf "
+                         "values); nothing was rendered: write the store again with the command that wrote it "
+                         "(`btf export-exr --lv` names the rows)")
+    return btf, store.light_dir, store.view_dir, store.attrs
 
 
 def write_png(path: str | os.PathLike, srgb: np.ndarray) -> Path:
@@ -138,8 +148,11 @@ def write_png(path: str | os.PathLike, srgb: np.ndarray) -> Path:
     rgb = np.asarray(srgb)
     if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
         raise ValueError(f"srgb must be an (rows, cols, 3) uint8 image, got {rgb.dtype} {rgb.shape}")
-    if not cv2.imwrite(str(p), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
+    tmp = p.with_name(f".{p.stem}.tmp{p.suffix}")          # never a half-written image at ``path``
+    if not cv2.imwrite(str(tmp), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
         raise OSError(f"OpenCV could not write {p}; check the folder and the .png suffix")
+    kill_point("file-replace")
+    os.replace(tmp, p)
     return p
 
 

@@ -41,6 +41,7 @@ from btfcore.capture.resample import (
     unique_directions,
 )
 from tasks.compute import run_all
+from tasks.faults import kill_point
 from tasks.staging import commit_staged, output_refusal, staged_target, staging_path, store_attrs, trash_path
 from tasks.stores.btf import (
     RESAMPLED_LV_ORDER,
@@ -344,6 +345,7 @@ def resample_views(source_path: str, out_path: str, views: Sequence[int], weight
         raise
     for i, v in enumerate(views):
         out["btf"][v * n_l:(v + 1) * n_l] = dst[i * n_l:(i + 1) * n_l]      # exactly one chunk
+    kill_point("chunk-written")
     for v in views:
         out["written"][v] = 1                                     # markers after the data
     return {"views": [int(v) for v in views], "source_chunks": int(len(np.unique(blocks)))}

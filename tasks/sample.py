@@ -21,6 +21,7 @@ import zarr
 
 from btfcore.acquisition.sampling import SAMPLING_METHODS, select_samples
 from btfcore.dome import Device
+from tasks.faults import kill_point
 from tasks.model import SCHEMA_NAME, read_basis
 
 __all__ = [
@@ -292,6 +293,7 @@ def write_samples(doc: dict[str, Any], path: str | os.PathLike) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(json.dumps(doc, indent=1))
+    kill_point("file-replace")
     tmp.replace(path)
     return path
 
@@ -314,4 +316,9 @@ def read_samples(path: str | os.PathLike) -> dict[str, Any]:
     if not isinstance(doc, dict) or doc.get("schema") != SAMPLES_SCHEMA[0]:
         raise ValueError(f"{path}: schema {doc.get('schema') if isinstance(doc, dict) else None!r}, expected "
                          f"{SAMPLES_SCHEMA[0]!r}; write it with `btf sample`")
+    for i, pair in enumerate(doc.get("pairs") or []):
+        if not (isinstance(pair, list) and len(pair) == 2
+                and all(isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in pair)):
+            raise ValueError(f"{path}: pairs[{i}] = {pair!r} is not a (turntable, LED) pair of two non-negative "
+                             "integers; write the file again with `btf sample ... --device DEVICE`")
     return doc

@@ -29,6 +29,17 @@ from btfcore.simulate.camera import holder_radiance, render_frame, sample_mask
 from btfcore.dome import DEVICE_NAMES, Device, get_device
 from btfcore.simulate.materials import MATERIAL_CLASSES, MaterialMaps, make_material, white_standard
 from btfcore.simulate.render import downsample2, horizon_map, render_view
+from btfcore.simulate.nonideal import (
+    IDEAL,
+    DomeNonIdeality,
+    gain_factor,
+    hot_pixel_mask,
+    led_drift_factors,
+    metered_maximum,
+    registration_shifts,
+    sensor_at_gain,
+    shift_images,
+)
 from btfcore.simulate.sensor import choose_bracket, dark_current_map, dark_frames, expose
 from tasks.stores import (
     CaptureMetadata,
@@ -86,6 +97,11 @@ class SimulationConfig:
         (:meth:`btfcore.dome.Device.with_overrides`, ``pixel_scale``): a larger
         region of interest for the super-resolution evaluation (SR paper §4).
         Left out of :meth:`to_json` (and so of :func:`config_hash`) at 1.
+    non_ideal : DomeNonIdeality
+        The dome's non-idealities (LED drift, one bracket per multiplexed capture, camera gains,
+        registration error, hot pixels; docs/simulator-physics.md, "A dome that is not ideal"). The
+        ideal dome by default, left out of :meth:`to_json` (and so of :func:`config_hash`): its stores
+        are bit-identical to those written before the option existed.
     """
 
     device: str = "tiny"
@@ -99,6 +115,7 @@ class SimulationConfig:
     psf_sigma_px: float = 0.0
     plan: CapturePlan | None = None
     camera_scale: int = 1
+    non_ideal: DomeNonIdeality = IDEAL
 
     def __post_init__(self) -> None:
         problems = []
@@ -120,6 +137,9 @@ class SimulationConfig:
             problems.append(f"n_turntable must be >= 1, got {self.n_turntable}")
         if isinstance(self.camera_scale, bool) or not isinstance(self.camera_scale, int) or self.camera_scale < 1:
             problems.append(f"camera_scale must be an integer >= 1, got {self.camera_scale!r}")
+        if not isinstance(self.non_ideal, DomeNonIdeality):
+            problems.append(f"non_ideal must be a btfcore.simulate.nonideal.DomeNonIdeality, got "
+                            f"{type(self.non_ideal).__name__}")
         if problems:
             raise ValueError("invalid simulation config: " + "; ".join(problems))
         if self.plan is not None:
@@ -156,6 +176,10 @@ class SimulationConfig:
         d = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "plan"}
         if self.camera_scale == 1:
             del d["camera_scale"]            # the configs (and hashes) of the stores written before it existed
+        if self.non_ideal.is_ideal:
+            del d["non_ideal"]               # likewise
+        else:
+            d["non_ideal"] = self.non_ideal.to_json()
         d["classes"] = list(self.classes)
         if self.plan is not None:                             # the whole plan is in each store's plan group
             from tasks.stores.measurement import plan_summary
@@ -390,17 +414,75 @@ def simulate_view(store_path: str, config: SimulationConfig, spec: MaterialSpec,
         if not taken.size:
             return turntable, camera                                        # the plan takes nothing here
         weights, planned_times = weights[taken], plan_times[turntable, camera, taken]
+    rng = np.random.default_rng([config.seed, spec.index, turntable, camera])
+    if not config.non_ideal.is_ideal:
+        shots = (np.arange(weights.shape[0]) if config.plan is None else taken)
+        raw, times = _expose_nonideal(device, config, spec, weights, shots, store.meta.illumination.shape[0],
+                                      truth_2x, turntable, camera, planned_times, rng)
+        store.write_bracket(turntable, camera, raw, times)
+        return turntable, camera
     frames, mask = pattern_frames(device, weights, truth_2x, turntable, camera)
     if planned_times is None:
         times = choose_bracket(frames, device.sensor, mask=mask)            # (n_illum, n_exp)
     else:
         times = planned_times                   # shorter brackets end in 0 s: those frames stay 0
-    rng = np.random.default_rng([config.seed, spec.index, turntable, camera])
     raw = expose(frames[:, None], np.where(times > 0, times, 1e-6), device.sensor,
                  camera_dark_map(device, camera), rng)
     raw[times == 0] = 0
     store.write_bracket(turntable, camera, raw, times)
     return turntable, camera
+
+
+def _expose_nonideal(device: Device, config: SimulationConfig, spec: MaterialSpec, weights: np.ndarray,
+                     shots: np.ndarray, n_shots: int, truth_2x: np.ndarray, turntable: int, camera: int,
+                     planned_times: np.ndarray | None, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Raw brackets ``(n, n_exp, rows, cols)`` and their exposure times ``(n, n_exp)`` of one view under a
+    dome that is not ideal (docs/simulator-physics.md, "A dome that is not ideal").
+
+    ``weights`` ``(n, n_leds)`` are the view's patterns, ``shots`` their indices among the capture's
+    ``n_shots`` illuminations. Each LED of shot ``i`` at this turntable position shines ``led_drift_factors``
+    times its intensity (the draw, seeded by the position, is the same for every camera); each
+    pattern's radiance is shifted by its own registration offset; single-light patterns are read at
+    ``single_gain_db``, multiplexed ones at ``multiplex_gain_db`` (a frame's recorded exposure time is
+    its shutter time times :func:`~btfcore.simulate.nonideal.gain_factor`, the scale the HDR merge
+    divides by); with ``multiplex_single_exposure`` the multiplexed patterns share the bracket of the
+    pattern metered on (:func:`~btfcore.simulate.nonideal.metered_maximum`); hot pixels read the white
+    level in every frame (not in the dark frames).
+    """
+    dome = config.non_ideal
+    drift = led_drift_factors(dome.led_drift, np.random.default_rng([config.seed, spec.index, turntable, 1 << 21]),
+                              (n_shots, device.n_leds))[shots]
+    frames, mask = pattern_frames(device, (weights * drift).astype(np.float32), truth_2x, turntable, camera)
+    shifts = registration_shifts(dome.registration_sd_px,
+                                 np.random.default_rng([config.seed, spec.index, turntable, camera, 1 << 22]),
+                                 n_shots)[shots]
+    frames = shift_images(frames, shifts)
+    multiplexed = weights.sum(axis=1) > 1
+    raw = np.empty((frames.shape[0], int(device.sensor.n_exposures) if planned_times is None
+                    else planned_times.shape[1], *device.roi_shape), dtype=np.uint16)
+    times = np.zeros(raw.shape[:2])
+    dark = camera_dark_map(device, camera)
+    for kind, gain_db in ((False, dome.single_gain_db), (True, dome.multiplex_gain_db)):
+        idx = np.flatnonzero(multiplexed == kind)
+        if not idx.size:
+            continue
+        sensor = sensor_at_gain(device.sensor, gain_db)
+        if planned_times is None:
+            shutter = choose_bracket(frames[idx], sensor, mask=mask)
+            if kind and dome.multiplex_single_exposure:                  # one bracket, metered on the median
+                first = shutter[:, 0]
+                metered = 1.0 / metered_maximum(1.0 / first)[0]          # t_1 = h F / r_max: median of r_max
+                shutter = np.broadcast_to(shutter[int(np.argmin(np.abs(first - metered)))], shutter.shape)
+        else:
+            shutter = planned_times[idx] / gain_factor(gain_db)          # the plan's times are recorded ones
+        raw[idx] = expose(frames[idx][:, None], np.where(shutter > 0, shutter, 1e-6), sensor, dark, rng)
+        raw[idx] = np.where((shutter == 0)[..., None, None], 0, raw[idx])
+        times[idx] = (shutter * gain_factor(gain_db) if planned_times is None    # the scale the HDR merge
+                      else planned_times[idx])                                 # divides by
+    hot = hot_pixel_mask(dome.hot_pixel_fraction, np.random.default_rng([DEVICE_SEED, camera, 5]), device.roi_shape)
+    if hot.any():
+        raw[:, :, hot] = np.where(times[..., None] > 0, device.sensor.white_level, 0)
+    return raw, times
 
 
 @dataclass

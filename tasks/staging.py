@@ -19,6 +19,8 @@ from typing import Any, Callable
 
 import zarr
 
+from tasks.faults import kill_point
+
 
 def staging_path(out: str | os.PathLike) -> Path:
     """Where a run that replaces the output at ``out`` is built: ``X.partial.zarr`` beside
@@ -141,8 +143,10 @@ def commit_staged(out: str | os.PathLike, command: str) -> Path:
     if not attrs.get("complete"):
         raise RuntimeError(f"{staging}: the staged {command} is unfinished; run `btf {command}` again to resume it")
     shutil.rmtree(trash, ignore_errors=True)        # left over from an earlier, interrupted commit
+    kill_point("commit-start")
     if out.exists():
         os.rename(out, trash)
+    kill_point("commit-between-renames")
     os.rename(staging, out)
     shutil.rmtree(trash, ignore_errors=True)
     return out
@@ -204,11 +208,13 @@ def check_output_location(path: str | os.PathLike, option: str = "--out") -> Non
 
     The nearest existing folder above ``path`` must be a writable directory: a regular
     file on the way (``out.zarr/x`` under a file ``out.zarr``), a read-only or
-    permission-denied folder are named with the option and the path.
+    permission-denied folder are named with the option and the path. An existing output
+    folder must hold no symbolic link (at its top level) to a place outside it, which the
+    run would write through (a crafted ``exr/lv00000....exr -> /elsewhere``).
 
     Raises
     ------
-    NotADirectoryError, PermissionError
+    NotADirectoryError, PermissionError, ValueError
         One line naming ``option``, the path and what to do.
     """
     path = Path(path)
@@ -222,6 +228,14 @@ def check_output_location(path: str | os.PathLike, option: str = "--out") -> Non
                                  "folders are folders")
     if path.exists() and not path.is_dir() and not os.access(path, os.W_OK):
         raise PermissionError(f"{option} {path}: the file is not writable; choose another {option}")
+    if path.is_dir():                   # a run writes inside its output only, never through a link out of it
+        root = path.resolve()
+        for entry in os.scandir(path):
+            target = Path(entry.path).resolve()
+            if entry.is_symlink() and target != root and root not in target.parents:
+                raise ValueError(f"{option} {path}: {entry.name} is a symbolic link to {target}, outside the "
+                                 f"output; a run writes only inside its output: remove the link or choose another "
+                                 f"{option}")
     if not os.access(parent, os.W_OK | os.X_OK):
         raise PermissionError(f"{option} {path}: the folder {parent} is not writable (permissions or a read-only "
                               f"file system); choose another {option}")
@@ -264,5 +278,7 @@ def finish_store(path: str | os.PathLike, group: zarr.Group) -> zarr.Group:
         shutil.rmtree(path)
     elif path.exists():
         path.unlink()
+    kill_point("store-creating")
     os.rename(creating_path(path), path)
+    kill_point("store-created")
     return zarr.open_group(str(path), mode="r+", zarr_format=3)

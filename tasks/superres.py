@@ -31,6 +31,7 @@ import numpy as np
 from btfcore.superres.regions import UPSAMPLE_METHODS, rectify_regions, scale_homography, upsample_regions
 from btfcore.superres.scaling import area_downsample
 from tasks.compute import run_all
+from tasks.faults import kill_point
 from tasks.staging import commit_staged, staged_target, staging_path, store_attrs, trash_path
 from tasks.stores.btf import (
     LV_ORDER,
@@ -107,6 +108,7 @@ def save_model(path: str | os.PathLike, state: dict[str, Any], config: Any, prov
                "state_dict": state, "sha256": _digest(state)}
     tmp = path.with_name(f".{path.name}.tmp")
     torch.save(payload, tmp)
+    kill_point("file-replace")
     os.replace(tmp, path)                                  # never a half-written model at ``path``
     return path
 
@@ -354,6 +356,7 @@ def apply_view(source_path: str, model_path: str | None, out_path: str, method: 
     h, w = out.texture_shape
     H = scale_homography(source.homography[t, c], SUPERRES_FACTOR)
     out.group["btf"][rows] = rectify_regions(up, H, (h, w), float(source.attrs["sample_size_m"]))
+    kill_point("chunk-written")
     out.group["written"][t, c] = 1                                                 # marker after the data
     return t, c
 

@@ -64,6 +64,22 @@ def tiny_btf(tmp_path_factory, dask_client):
     return out / "btf.zarr"
 
 
+@pytest.fixture(scope="session")
+def tiny_btf_nonideal(tmp_path_factory, dask_client):
+    """``tiny_btf``'s capture under the "realistic" dome that is not ideal (LED drift, 10 dB single-light gain,
+    registration error, hot pixels; docs/simulator-physics.md, "A dome that is not ideal"), ingested."""
+    from btfcore.simulate.nonideal import PRESETS
+    from tasks.ingest import ingest_capture
+    from tasks.simulate import SimulationConfig, simulate_database
+
+    out = tmp_path_factory.mktemp("tiny-btf-nonideal")
+    config = SimulationConfig(device="tiny", n_materials=1, seed=8, classes=("leather",), n_turntable=1,
+                              texture_size=8, non_ideal=PRESETS["realistic"])
+    capture = simulate_database(config, out, dask_client).stores[0]
+    ingest_capture(capture, out / "btf.zarr", dask_client)
+    return out / "btf.zarr"
+
+
 _CFA_CODES = {"R": 0, "G": 1, "B": 2}
 
 

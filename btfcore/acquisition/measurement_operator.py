@@ -244,8 +244,10 @@ def measurement_solve_operator(
         R, cond = _regularised_solve(_times_basis(g, u), s, lam_v, "G U", hint)
         return _finish(R, u, fused, dtype, condition=cond, **kw)
     P = demultiplexing_matrix(g)                                      # (n_lv, n_meas): B_demux = G^+ y
-    R, dropped, cond = _denoise_operator(u, method, variance, decile)
+    R, dropped, cond, n_fallback = _denoise_operator(u, method, variance, decile)
     if cond is not None:
         kw["condition"] = cond
+    if n_fallback:
+        kw["fallback"] = n_fallback
     R = (P.T @ R.T).T                                                 # de-noise G^+ y: R G^+
     return _finish(np.ascontiguousarray(R), u, fused, dtype, dropped=dropped, **kw)

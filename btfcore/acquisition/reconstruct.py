@@ -88,6 +88,7 @@ __all__ = [
     "LAMBDA_NIELSEN",
     "RECONSTRUCTION_METHODS",
     "THRESHOLD_DECILE",
+    "THRESHOLD_FALLBACK_MARGIN",
     "SolveOperator",
     "abtf_halo",
     "abtf_operator",
@@ -110,6 +111,10 @@ LAMBDA_NIELSEN = 40.0
 LAMBDA_ALS = 0.01
 #: Textures whose variance lies above this decile are left out by ``'thresholded'`` (VMV paper §4.1).
 THRESHOLD_DECILE = 9
+#: ``'thresholded'`` falls back to the projection in the directions of the reduced basis :math:`\tilde U`
+#: that are worse determined than the full basis by more than this factor (singular value below
+#: :math:`s_{max}(\tilde U) / (M \kappa(U))`): docs/demultiplex-resample.md, "Thresholded fallback".
+THRESHOLD_FALLBACK_MARGIN = 4.0
 
 
 # --------------------------------------------------------------------------- the operator
@@ -144,6 +149,9 @@ class SolveOperator:
         ``'projection'``.
     patch_size : int or None
         ``p`` for an ABTF operator (:func:`abtf_operator`), else None.
+    fallback : int
+        ``'thresholded'``: the directions of the reduced basis taken from the projection instead
+        (:data:`THRESHOLD_FALLBACK_MARGIN`); 0 for a plain thresholded solve and other methods.
     """
 
     coefficients: np.ndarray
@@ -155,6 +163,7 @@ class SolveOperator:
     dropped: np.ndarray | None = None
     condition: float = float("nan")
     patch_size: int | None = None
+    fallback: int = 0
 
     def __post_init__(self) -> None:
         for a in (self.coefficients, self.basis, self.fused, self.rows, self.dropped):
@@ -315,14 +324,43 @@ def _finish(R: np.ndarray, U: np.ndarray, fused: bool | None, dtype, **kw) -> So
     return SolveOperator(coefficients=R.astype(dt), basis=U.astype(dt), fused=F, **kw)
 
 
+def _thresholded_fallback(u: np.ndarray, kept: np.ndarray) -> tuple[np.ndarray, float, int] | None:
+    r"""The thresholded solve with its badly determined directions taken from the projection, or None
+    when every direction of ``U~ = u[kept]`` is within :data:`THRESHOLD_FALLBACK_MARGIN` of the full
+    basis' conditioning: ``(R, condition, n_directions)``.
+
+    With :math:`\tilde U = Q S W^T` and :math:`g` the directions with
+    :math:`s_i\, M \kappa(U) \ge s_1` (:math:`b` the others),
+
+    .. math:: C = W_g S_g^{-1} Q_g^T \tilde B + W_b W_b^T U^T B,
+
+    so the well-determined directions are exactly the thresholded solve's (the dropped rows do not enter
+    them) and the others the projection's (VMV §4.1), which uses every row; for data in the span of
+    ``U`` both parts are exact, so the fallback adds no bias."""
+    s_full = np.linalg.svd(u, compute_uv=False)
+    if not s_full[-1] > 0 or kept.size < u.shape[1]:
+        return None
+    Q, s, Wt = np.linalg.svd(u[kept], full_matrices=False)
+    bad = s * (THRESHOLD_FALLBACK_MARGIN * s_full[0] / s_full[-1]) < s[0]
+    if not bad.any():
+        return None
+    good = ~bad
+    R = np.zeros((u.shape[1], u.shape[0]))
+    R[:, kept] = (Wt[good].T / s[good]) @ Q[:, good].T                # W_g S_g^-1 Q_g^T on the kept rows
+    R += Wt[bad].T @ (Wt[bad] @ u.T)                                  # W_b W_b^T U^T on every row
+    s_eff = np.concatenate([s[good], np.ones(int(bad.sum()))])        # the projection's directions: gain 1
+    return R, float(s_eff.max() / s_eff.min()), int(bad.sum())
+
+
 def _denoise_operator(u: np.ndarray, method: str, variance: np.ndarray | None, decile: float
-                      ) -> tuple[np.ndarray, np.ndarray | None, float | None]:
-    """``(R, dropped, condition)`` of the VMV de-noising of a demultiplexed BTF: ``R = U^T``
+                      ) -> tuple[np.ndarray, np.ndarray | None, float | None, int]:
+    """``(R, dropped, condition, fallback)`` of the VMV de-noising of a demultiplexed BTF: ``R = U^T``
     (``'projection'``) or ``U~^+`` on the rows kept below ``decile`` of ``variance``, zero on the
-    dropped ones (``'thresholded'``); ``condition`` is None for the projection."""
+    dropped ones (``'thresholded'``), with the :func:`_thresholded_fallback` where ``U~`` is worse
+    conditioned than ``U`` by :data:`THRESHOLD_FALLBACK_MARGIN`; ``condition`` is None for the projection."""
     n_lv, k = u.shape
     if method == "projection":
-        return u.T.copy(), None, None                                 # VMV §4.1: U (U^T B_demux)
+        return u.T.copy(), None, None, 0                              # VMV §4.1: U (U^T B_demux)
     if variance is None:
         raise ValueError("method='thresholded' needs variance, the (n_lv,) per-texture variance of the "
                          "demultiplexed BTF (texture_variance)")
@@ -330,13 +368,17 @@ def _denoise_operator(u: np.ndarray, method: str, variance: np.ndarray | None, d
     if var.shape != (n_lv,):
         raise ValueError(f"variance has shape {var.shape}; it must be ({n_lv},), one value per row of U")
     kept, dropped = threshold_rows(var, decile)
+    fallback = _thresholded_fallback(u, kept)
+    if fallback is not None:
+        R, cond, n_bad = fallback
+        return R, dropped, cond, n_bad
     Rk, cond = _regularised_solve(u[kept], None, 0.0, "U~ (U without the dropped rows)",
                                   "use a higher decile or fewer basis vectors",
                                   "use method='projection', a higher decile (fewer rows dropped) or fewer basis "
                                   "vectors")
     R = np.zeros((k, n_lv))
     R[:, kept] = Rk                                                   # VMV §4.1: U~^+ B~_demux
-    return R, dropped, cond
+    return R, dropped, cond, 0
 
 
 def solve_operator(
@@ -436,7 +478,8 @@ def solve_operator(
       given).
     * ``'thresholded'`` (VMV §4.1): :math:`R = \\tilde U^\\dagger`, scattered
       to the kept rows (zero columns at the dropped ones); rows are dropped
-      by :func:`threshold_rows`.
+      by :func:`threshold_rows`; directions :math:`\\tilde U` no longer determines
+      (:data:`THRESHOLD_FALLBACK_MARGIN`) are taken from the projection.
 
     Log versus linear space is the caller's choice: multiplexed
     measurements must be fitted in linear space (paper 4, §4: "we cannot
@@ -500,9 +543,11 @@ def _denoising_operator(u: np.ndarray, p: np.ndarray | None, rows, method: str, 
         raise ValueError(f"method={method!r} projects the whole demultiplexed BTF; it takes no rows "
                          f"(use method='direct' with rows for sparse multiplexed measurements)")
     n_lv, k = u.shape
-    R, dropped, cond = _denoise_operator(u, method, variance, decile)
+    R, dropped, cond, n_fallback = _denoise_operator(u, method, variance, decile)
     if cond is not None:
         kw["condition"] = cond
+    if n_fallback:
+        kw["fallback"] = n_fallback
     if p is not None:                                                 # fold demultiplexing in: R (I (x) P)
         n_views = _views(n_lv, p)
         P = demultiplex_operator(p)                                   # (n_lights, n_p)

@@ -31,7 +31,7 @@ from scipy import sparse
 
 from btfcore.capture.demosaic import demosaic
 from btfcore.capture.demultiplex import demultiplex_operator
-from btfcore.capture.hdr import dark_per_exposure, merge_linear
+from btfcore.capture.hdr import dark_per_exposure, merge_linear, merge_response
 from btfcore.capture.radiometric import apply_colour_matrix, apply_led_calibration
 from btfcore.capture.rectify import apply_rectification, rectification_matrix, support_window
 
@@ -116,12 +116,12 @@ def to_single_leds(images: np.ndarray, P: np.ndarray, *, led_gain: np.ndarray | 
 
 def process_view(frames: np.ndarray, exposure_time: np.ndarray, patterns: np.ndarray, *,
                  bayer_pattern: str | None, black_level: float, white_level: float, homography: np.ndarray,
-                 texture_shape: tuple[int, int], sample_size_m: float,
+                 texture_shape: tuple[int, int], sample_size_m: float, response: np.ndarray | None = None,
                  dark_frames: np.ndarray | None = None, dark_exposure_time: np.ndarray | None = None,
                  gain_e_per_dn: float | None = None, read_noise_e: float | None = None,
                  led_gain: np.ndarray | None = None, colour_matrix: np.ndarray | None = None,
                  window: tuple[slice, slice, sparse.csr_matrix] | None = None,
-                 out: np.ndarray | None = None, roi_out: np.ndarray | None = None,
+                 out: np.ndarray | None = None, roi_out: np.ndarray | None = None, response_method: str = "debevec",
                  settings: IngestSettings = IngestSettings()) -> tuple[np.ndarray, np.ndarray]:
     """Raw brackets of one view to demultiplexed, rectified linear RGB textures.
 
@@ -156,6 +156,8 @@ def process_view(frames: np.ndarray, exposure_time: np.ndarray, patterns: np.nda
         Buffer for the rectified textures, reused across views by the caller
         (first-touch of fresh memory is slow, docs/architecture.md,
         "Pitfalls"); a single-LED capture's result is returned in it.
+    response : (n_codes, 3) ndarray, optional
+        A non-linear camera's response (``bayer_pattern=None``, codes in ``frames``): :func:`merge_ldr`.
     roi_out : (n_leds, win_rows, win_cols, 3) ndarray of float32, optional
         Filled with the view's HDR radiance region before rectification (SR paper §4): the merged
         and demosaicked window, demultiplexed to single LEDs and radiometrically corrected like the
@@ -211,11 +213,12 @@ def process_view(frames: np.ndarray, exposure_time: np.ndarray, patterns: np.nda
                 for k_exp, t_k in enumerate(exposure_time[i]):
                     np.multiply(dark_line[1], np.float32(t_k), out=dark[k_exp])
                     dark[k_exp] += dark_line[0]                                     # dark = offset + rate t
-            hdr[k], valid = merge_linear(frames[i], exposure_time[i], black_level=black_level,
-                                         white_level=white_level, gain_e_per_dn=gain_e_per_dn,
-                                         read_noise_e=read_noise_e,
-                                         dark=dark[..., None] if full_rgb and dark is not None else dark,
-                                         saturation_margin=settings.saturation_margin)
+            hdr[k], valid = merge_ldr(frames[i], exposure_time[i], response, response_method) \
+                if response is not None else merge_linear(                  # a non-linear (LDR) camera, or raw
+                    frames[i], exposure_time[i], black_level=black_level, white_level=white_level,
+                    gain_e_per_dn=gain_e_per_dn, read_noise_e=read_noise_e,
+                    dark=dark[..., None] if full_rgb and dark is not None else dark,
+                    saturation_margin=settings.saturation_margin)
             valid_fraction[i] = float(valid.mean())
         if not full_rgb:
             demosaic(hdr[:n], bayer_pattern, method=settings.demosaic, out=rgb[:n])
@@ -231,6 +234,15 @@ def process_view(frames: np.ndarray, exposure_time: np.ndarray, patterns: np.nda
     if roi is not None:
         to_single_leds(roi, P, led_gain=led_gain, colour_matrix=colour_matrix, out=roi_out)
     return textures, valid_fraction
+
+
+def merge_ldr(codes: np.ndarray, exposure_time: np.ndarray, response: np.ndarray, method: str = "debevec"
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """One bracket of a non-linear camera's 8- or 16-bit codes (stored as uint16) merged through its
+    ``(n_codes, 3)`` response (:func:`btfcore.capture.hdr.merge_response`, ``method`` ``'debevec'`` or
+    ``'robertson'``): ``(radiance, valid)`` in the response's relative units per second."""
+    codes = codes.astype(np.uint8) if response.shape[0] == 256 else codes
+    return merge_response(codes, exposure_time, response, method=method, return_valid=True)
 
 
 def _roi_buffer(roi_out: np.ndarray | None, P: np.ndarray, win_shape: tuple[int, int]) -> np.ndarray | None:

@@ -35,6 +35,7 @@ import numpy as np
 from btfcore.bonn import COLOUR_MODELS, UnknownColourModelError, decode_colour, decode_textures, encode_colour, \
     factorise
 from tasks.bonn.header import CommonHeader, make_header, sph_to_dir
+from tasks.faults import kill_point
 from tasks.stores.btf import LV_ORDER, RESAMPLED_LV_ORDER, BtfStore, open_btf_store
 
 __all__ = [
@@ -415,6 +416,7 @@ def export_store(store_path: str | os.PathLike, out_file: str | os.PathLike, *, 
             header, summary = _write_bdi(plan, partial, lines_per_chunk)
         else:
             header, summary = _write_factorised(plan, partial)
+        kill_point("file-replace")
         os.replace(partial, plan.out)
     finally:
         if partial.exists():

@@ -35,6 +35,7 @@ import numpy as np
 
 from btfcore.bonn import decode_colour, decode_textures, restore_dynamic_range
 from tasks.compute import run_all
+from tasks.faults import kill_point
 from tasks.staging import (
     check_output_location,
     commit_staged,
@@ -595,6 +596,7 @@ def import_block(source: str, target: str, stamp: tuple, views: list[int], band_
     for i, v in enumerate(views):
         btf[v * n_l:(v + 1) * n_l, y0:y1] = data[i * n_l:(i + 1) * n_l]        # exactly one chunk
     del data
+    kill_point("chunk-written")
     for v in views:
         written[v, band_index] = 1                                          # markers after the data
     return {"chunks": len(views)}

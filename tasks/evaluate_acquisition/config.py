@@ -9,6 +9,7 @@ from typing import Any
 
 from btfcore.dome import DEVICE_NAMES, Device, get_device
 from btfcore.simulate.materials import MATERIAL_CLASSES
+from btfcore.simulate.nonideal import IDEAL, DomeNonIdeality
 from tasks.model import LINEAR_SVD, ModelSettings
 from tasks.simulate import MaterialSpec
 
@@ -60,6 +61,10 @@ class EvaluationConfig:
         Keep the rendered materials' reconstruction stores (about 50 MB per
         strategy at the default scale); by default they are removed once
         rendered.
+    non_ideal : DomeNonIdeality
+        The dome's non-idealities applied to the simulated measurements
+        (:mod:`btfcore.acquisition.nonideal_measurement`); the ideal dome by
+        default. Left out of :meth:`to_json` (and so of the scores key) when ideal.
     """
 
     device: str = "bonn-dome2"
@@ -77,6 +82,7 @@ class EvaluationConfig:
     render_materials: int = 1
     render_size: int = 64
     keep_reconstructions: bool = False
+    non_ideal: DomeNonIdeality = IDEAL
 
     def __post_init__(self) -> None:
         problems = []
@@ -98,6 +104,8 @@ class EvaluationConfig:
                             f"got {self.render_materials}")
         if not 0 < self.abrdf_k_fraction <= 1:
             problems.append(f"abrdf_k_fraction must lie in (0, 1], got {self.abrdf_k_fraction}")
+        if not isinstance(self.non_ideal, DomeNonIdeality):
+            problems.append(f"non_ideal must be a DomeNonIdeality, got {type(self.non_ideal).__name__}")
         if problems:
             raise ValueError("invalid evaluation config: " + "; ".join(problems))
 
@@ -121,6 +129,8 @@ class EvaluationConfig:
     def to_json(self) -> dict[str, Any]:
         d = asdict(self)
         d["classes"] = list(self.classes)
+        if self.non_ideal.is_ideal:
+            del d["non_ideal"]            # the configs (and scores keys) of the evaluations before it existed
         return d
 
     def model_settings(self) -> ModelSettings:

@@ -37,11 +37,23 @@ from btfcore.acquisition.band_evaluation import (
 )
 from btfcore.acquisition.hadamard import multiplexing_patterns
 from btfcore.acquisition.noise import SensorNoise, exposure_gain
+from btfcore.acquisition.nonideal_measurement import (
+    DomeDraws,
+    draw_effects,
+    measure_band_nonideal,
+    nonideal_gains,
+    nonideal_moments,
+    noises_at_gains,
+    registration_halo,
+)
 from btfcore.acquisition.reconstruct import abtf_halo
 from btfcore.acquisition.strategies import Geometry, Strategy, StrategyBases, build_strategies, strategy_names
+from btfcore.simulate.camera import sample_corners_px
+from btfcore.simulate.nonideal import DomeNonIdeality
 from tasks.compute import Progress, run_all, wait_all
 from tasks.evaluate_acquisition.config import EvaluationConfig
 from tasks.evaluate_acquisition.reuse import finished_store, read_record, write_record
+from tasks.faults import kill_point
 from tasks.model import CHANNELS, LINEAR_SVD, Material, ModelSettings, fit_material, merge_bases, open_model_store
 from tasks.stores.btf import create_btf_store, open_btf_store
 
@@ -107,26 +119,46 @@ def band_maxima(path: str, r0: int, r1: int, patterns: np.ndarray, geometry: Geo
 
 
 def band_variance(path: str, r0: int, r1: int, gains: tuple[np.ndarray, np.ndarray], patterns: np.ndarray,
-                  geometry: Geometry, noise: SensorNoise, seed: Sequence[int]) -> Moments:
-    """(count, mean, M2) per row of the linear demultiplexed RGB (texels and channels) within rows r0:r1."""
-    return demultiplexed_moments(_read_rows(path, r0, r1), r0, gains, patterns, geometry, noise, seed)
+                  geometry: Geometry, noise: SensorNoise, seed: Sequence[int],
+                  dome: tuple[DomeDraws, tuple[SensorNoise, SensorNoise]] | None = None) -> Moments:
+    """(count, mean, M2) per row of the linear demultiplexed RGB (texels and channels) within rows r0:r1.
+
+    ``dome``: the draws and the noise models at their gains of a non-ideal dome
+    (:mod:`btfcore.acquisition.nonideal_measurement`); None: the ideal dome.
+    """
+    if dome is None:
+        return demultiplexed_moments(_read_rows(path, r0, r1), r0, gains, patterns, geometry, noise, seed)
+    ext = registration_halo(r0, r1, geometry.height)
+    return nonideal_moments(_read_rows(path, ext.start, ext.stop), ext.start, r0, r1, gains, dome[1], patterns,
+                            geometry, dome[0], seed)
 
 
 def evaluate_band(path: str, r0: int, r1: int, strategies: list[Strategy], gains: tuple[np.ndarray, np.ndarray],
                   patterns: np.ndarray, geometry: Geometry, noise: SensorNoise, seed: Sequence[int],
-                  write: dict[str, str] | None = None, floors: bool = True) -> dict[str, BandScores]:
+                  write: dict[str, str] | None = None, floors: bool = True,
+                  dome: tuple[DomeDraws, tuple[SensorNoise, SensorNoise]] | None = None) -> dict[str, BandScores]:
     """Measure, reconstruct and score every strategy on texture rows r0:r1 (one Dask task).
 
     With ``floors`` the scores also hold each strategy's noise-free floor under
     :func:`~btfcore.acquisition.band_evaluation.floor_name` (the same strategy on
     noise-free measurements, :func:`~btfcore.acquisition.band_evaluation.reconstruct_strategies`).
     With ``write`` (``{strategy: store path}``) the reconstructions are also
-    written to those stores (this band owns whole chunks of them).
+    written to those stores (this band owns whole chunks of them). With ``dome`` (the draws and the
+    noise models at their gains of a non-ideal dome) the measurements are the non-ideal dome's
+    (:func:`~btfcore.acquisition.nonideal_measurement.measure_band_nonideal`); the floors stay the
+    ideal dome's noise-free measurements.
     """
     h = geometry.height
     halo = abtf_halo(r0, r1, h, 3) if h >= 3 else slice(r0, r1)
-    truth_halo = _read_rows(path, halo.start, halo.stop)
-    measured = measure_band(truth_halo, halo.start, r0, r1, gains, patterns, geometry, noise, seed)
+    if dome is None:
+        truth_halo = _read_rows(path, halo.start, halo.stop)
+        measured = measure_band(truth_halo, halo.start, r0, r1, gains, patterns, geometry, noise, seed)
+    else:
+        ext = slice(max(0, halo.start - 1), min(h, halo.stop + 1))                 # the registration halo
+        truth_ext = _read_rows(path, ext.start, ext.stop)
+        truth_halo = truth_ext[:, halo.start - ext.start:halo.stop - ext.start]
+        measured = measure_band_nonideal(truth_ext, ext.start, halo.start, halo.stop, r0, r1, gains, dome[1],
+                                         patterns, geometry, dome[0], seed)
     noise_free = noise_free_band(truth_halo, halo.start, r0, r1, patterns, geometry) if floors else None
     scores, ref = {}, BandTruth.of(measured[0])
     for strategy, recon, floor in reconstruct_strategies(strategies, r0, r1, truth_halo, halo.start, geometry,
@@ -142,6 +174,7 @@ def evaluate_band(path: str, r0: int, r1: int, strategies: list[Strategy], gains
         if write and strategy.name in write:
             group = zarr.open_group(write[strategy.name], mode="r+", zarr_format=3)
             group["btf"][:, r0:r1] = recon
+            kill_point("chunk-written")
             group["written"][r0 // group["btf"].chunks[1]] = 1          # after the data it marks
     return scores
 
@@ -157,11 +190,34 @@ def _reduce_max(parts: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray,
     return np.max([p[0] for p in parts], axis=0), np.max([p[1] for p in parts], axis=0)
 
 
-def _gains(maxima: tuple[np.ndarray, np.ndarray], noise: SensorNoise, path: str) -> tuple[np.ndarray, np.ndarray]:
+def _gains(maxima: tuple[np.ndarray, np.ndarray], noise: SensorNoise, path: str,
+           dome: tuple[DomeNonIdeality, tuple[SensorNoise, SensorNoise], int] | None = None
+           ) -> tuple[np.ndarray, np.ndarray]:
     try:
+        if dome is not None:
+            return nonideal_gains(maxima, dome[1], dome[0], dome[2])
         return exposure_gain(maxima[0], noise), exposure_gain(maxima[1], noise)
     except ValueError as exc:
         raise ValueError(f"{path}: btf: {exc}") from None
+
+
+def _dome_draws(dome: DomeNonIdeality, geometry: Geometry, n_patterns: int, scale: np.ndarray, seed: Sequence[int],
+                noises: tuple[SensorNoise, SensorNoise]) -> tuple[DomeDraws, tuple[SensorNoise, SensorNoise]]:
+    """The non-ideal dome's draws for one material with its noise models (a task: computed once, read by every band)."""
+    return draw_effects(dome, geometry, n_patterns, scale, seed), noises
+
+
+def texels_per_px(config: EvaluationConfig) -> np.ndarray:
+    """Texels per camera pixel of every view ``(n_views,)``: the texture's width over the mean side of
+    the projected sample square in the view's camera pixels (the rectification's scale; the
+    non-ideal dome's registration offsets and hot pixels are converted with it)."""
+    device = config.build_device()
+    sides = []
+    for t in range(device.n_turn):
+        for c in range(device.n_cam):
+            corners = sample_corners_px(device.homography(t, c), device.sample_size_m)
+            sides.append(np.mean(np.linalg.norm(corners - np.roll(corners, 1, axis=0), axis=1)))
+    return device.texture_shape[1] / np.asarray(sides)
 
 
 def _operators(model_path: str, materials: list[Material], material_id: str, settings: ModelSettings,
@@ -237,15 +293,21 @@ def _submit_material(client: Any, model_path: str, materials: list[Material], m:
         return [client.submit(fn, m.path, r0, r1, *args, pure=False) for r0, r1 in parts]
 
     maxima = client.submit(_reduce_max, each_band(band_maxima, patterns, geometry), pure=False)
-    gains = client.submit(_gains, maxima, noise, m.path, pure=False)
-    variance = client.submit(moments_variance, each_band(band_variance, gains, patterns, geometry, noise, seed),
-                             pure=False)
+    dome, gain_dome = None, None
+    if not config.non_ideal.is_ideal:                    # the effects' draws: whole arrays, once per material
+        noises = noises_at_gains(noise, config.non_ideal)
+        dome = client.submit(_dome_draws, config.non_ideal, geometry, patterns.shape[0], texels_per_px(config), seed,
+                             noises, pure=False)
+        gain_dome = (config.non_ideal, noises, geometry.n_views)
+    gains = client.submit(_gains, maxima, noise, m.path, gain_dome, pure=False)
+    variance = client.submit(moments_variance, each_band(band_variance, gains, patterns, geometry, noise, seed,
+                                                         *([dome] if dome else [])), pure=False)
     ops = client.submit(_operators, model_path, materials, m.material_id, config.model_settings(), geometry, config,
                         variance, patterns, pure=False)
     strategies = client.submit(_first, ops, pure=False)
     info = client.submit(_strategy_info, ops, pure=False)
     scores = client.submit(_reduce_scores, each_band(evaluate_band, strategies, gains, patterns, geometry, noise,
-                                                     seed, write), pure=False)
+                                                     seed, write, True, *([dome] if dome else [])), pure=False)
     return scores, info, maxima
 
 

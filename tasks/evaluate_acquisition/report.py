@@ -103,7 +103,8 @@ def scale_of(materials: Sequence[Material], geometry: Geometry, config: Evaluati
             "light_turntable_pairs": n_pairs, "s_matrix_order": int(n_p),
             "thesis_n_s_scaled": {str(n): scaled_pairs(n, n_pairs) for n in THESIS_N_S},
             "sparse_multiplexed_n_s": scaled_pairs(THESIS_N_S[-1], geometry.n_turn * n_p),
-            "note": f"thesis: 26,136 pairs (12 turntable positions); n_s scaled by {n_pairs}/{THESIS_PAIRS}"}
+            "note": f"thesis: 26,136 pairs (12 turntable positions); n_s scaled by {n_pairs}/{THESIS_PAIRS}",
+            "dome": "ideal" if config.non_ideal.is_ideal else config.non_ideal.to_json()}
 
 
 #: How to read a strategy's error beside its noise-free floor (the every-strategy table).
@@ -138,7 +139,15 @@ def scale_text(scale: dict[str, Any]) -> str:
             f"{scale['texture'][0]} x {scale['texture'][1]} texels; {scale['materials']} materials: {classes}; "
             f"{scale['light_turntable_pairs']:,} (light, turntable) pairs, S-matrix order {scale['s_matrix_order']}; "
             f"the thesis' sample counts n_s scaled {n_s} (sparse + multiplexed: "
-            f"{scale['sparse_multiplexed_n_s']}); {scale['note']}.")
+            f"{scale['sparse_multiplexed_n_s']}); {scale['note']}{_dome_text(scale.get('dome', 'ideal'))}.")
+
+
+def _dome_text(dome: str | dict[str, Any]) -> str:
+    """The dome the measurements were simulated under (docs/simulator-physics.md, "A dome that is not ideal")."""
+    if dome == "ideal":
+        return "; the ideal dome"
+    return "; a dome that is not ideal: " + ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in dome.items()
+                                                     if v not in (0, 0.0, False))
 
 
 def _figure_flag(mid: str, name: str, psnr: float | None, flags: dict[str, Any]) -> str | None:

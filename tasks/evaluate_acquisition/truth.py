@@ -20,6 +20,7 @@ import zarr
 from btfcore.dome import Device
 from tasks.compute import Progress, wait_all
 from tasks.evaluate_acquisition.config import TRUTH_KIND, EvaluationConfig, TruthSpec, truth_specs
+from tasks.faults import kill_point
 from tasks.staging import store_attrs
 from tasks.stores.btf import LV_ORDER, BtfStore, create_btf_store
 
@@ -62,6 +63,7 @@ def render_truth_view(path: str, config: EvaluationConfig, prepared: tuple[Any, 
     v = t * device.n_cam + c
     group = zarr.open_group(path, mode="r+", zarr_format=3)
     group["btf"][v * device.n_leds:(v + 1) * device.n_leds] = truth.astype(np.float32)
+    kill_point("chunk-written")
     group["written"][t, c] = 1                                  # after the data it marks
     return v
 

@@ -274,7 +274,7 @@ class BtfStore:
                 f"complete={self.complete})")
 
     def check_arrays(self, produced_by: str = PRODUCERS) -> None:
-        """``btf``, ``light_dir`` and ``view_dir`` are there and fit together.
+        """``btf``, ``light_dir`` and ``view_dir`` are there and fit together, the directions finite.
 
         Raises
         ------
@@ -290,6 +290,13 @@ class BtfStore:
             raise BtfStoreError(self.path, f"{self.path}: btf {btf.shape}, light_dir {light.shape} and view_dir "
                                            f"{view.shape} do not fit ((n_lv, h, w, 3), (n_lv, 3), (n_lv, 3)); write "
                                            f"the store again with {produced_by} into a new --out")
+        for name in ("light_dir", "view_dir"):          # small: every reader interpolates or exports them
+            d = np.asarray(self.group[name][...])
+            bad = np.flatnonzero(~np.isfinite(d).all(axis=1))
+            if bad.size:
+                raise BtfStoreError(self.path, f"{self.path}: {name}[{int(bad[0])}] = {d[bad[0]].tolist()} is not "
+                                               f"finite ({bad.size} row(s) with NaN/Inf); write the store again with "
+                                               f"{produced_by} into a new --out")
 
     def require_ingested(self, hint: str) -> None:
         """Refuse a store that ``btf ingest`` did not write (a resampled one), with the caller's ``hint``.

@@ -50,6 +50,7 @@ from tasks.stores.capture_schema import (  # noqa: F401 - the schema's names are
     CaptureMetadata,
     CaptureStoreError,
     expected_chunks,
+    raw_spec,
 )
 from tasks.stores.capture_validate import (
     ArrayInfo,
@@ -326,7 +327,7 @@ def _meta_differences(a: CaptureMetadata, b: CaptureMetadata) -> list[str]:
 
 def _create_arrays(group: zarr.Group, meta: CaptureMetadata, arrays: Mapping[str, np.ndarray],
                    with_truth: bool) -> None:
-    n_turn, n_cam, n_illum, n_exp, rows, cols = meta.raw_shape
+    n_turn, n_cam, n_illum, n_exp, rows, cols = meta.raw_shape[:6]
     sizes = {
         "turntable": n_turn, "camera": n_cam, "illumination": n_illum, "exposure": n_exp,
         "row": rows, "col": cols, "led": meta.n_leds, "dark": meta.n_dark,
@@ -349,7 +350,7 @@ def _create_arrays(group: zarr.Group, meta: CaptureMetadata, arrays: Mapping[str
         return arr
 
     for name, spec in ARRAYS.items():
-        make(group, name, spec, arrays.get(name))
+        make(group, name, raw_spec(meta.bayer_pattern) if name == "raw" else spec, arrays.get(name))
     if with_truth:
         tg = group.create_group("truth")
         for name, spec in TRUTH_ARRAYS.items():

@@ -149,9 +149,10 @@ class CaptureMetadata:
         return self.n_turn * self.n_cam * self.n_leds
 
     @property
-    def raw_shape(self) -> tuple[int, int, int, int, int, int]:
-        """``(n_turn, n_cam, n_illum, n_exp, rows, cols)``."""
-        return (self.n_turn, self.n_cam, self.n_illum, int(self.n_exp), *map(int, self.roi_shape))
+    def raw_shape(self) -> tuple[int, ...]:
+        """``(n_turn, n_cam, n_illum, n_exp, rows, cols)``, and ``3`` channels last for an ``"RGB"`` capture."""
+        rgb = (3,) if self.bayer_pattern == "RGB" else ()
+        return (self.n_turn, self.n_cam, self.n_illum, int(self.n_exp), *map(int, self.roi_shape), *rgb)
 
     @property
     def config_hash(self) -> str | None:
@@ -231,6 +232,20 @@ TRUTH_ARRAYS: dict[str, tuple[str, tuple[tuple[str, str], ...], tuple | None]] =
     "truth/written": ("uint8", (("turntable", "turntable"), ("camera", "camera")), (1, 1)),
 }
 FIXED_SIZES = {"3": 3}
+
+#: ``bayer_pattern`` of a capture of demosaicked colour images (``btf import-images``): no mosaic; ``raw``
+#: then has a trailing ``channel`` axis of 3 (R, G, B) and the store holds the camera's ``response``.
+RGB_PATTERN = "RGB"
+#: ``raw`` of an :data:`RGB_PATTERN` capture: ``(n_turn, n_cam, n_illum, n_exp, rows, cols, 3)``.
+RAW_RGB_SPEC = ("uint16", ARRAYS["raw"][1] + (("channel", "3"),), (1, 1, 1, "exposure", "row", "col", "3"))
+#: ``response`` of an :data:`RGB_PATTERN` capture: each camera's linear inverse response per code and
+#: channel (``2**bit_depth`` codes; array attributes ``method`` and ``source``).
+RESPONSE_SPEC = ("float64", (("camera", "camera"), ("code", "code"), ("channel", "3")), None)
+
+
+def raw_spec(bayer_pattern: str | None) -> tuple:
+    """The ``raw`` array's (dtype, axes, chunk rule) for a capture with this ``bayer_pattern``."""
+    return RAW_RGB_SPEC if bayer_pattern == RGB_PATTERN else ARRAYS["raw"]
 
 
 def expected_chunks(rule: tuple | None, shape: tuple[int, ...], sizes: Mapping[str, int]) -> tuple[int, ...]:

@@ -16,6 +16,7 @@ import numpy as np
 import zarr
 from zarr.core.buffer import default_buffer_prototype
 
+from tasks.faults import kill_point
 from tasks.integrity import CorruptChunkError, chunk_files_exist, create_array, missing_problem, rerun_hint
 from tasks.stores.capture_schema import (
     META_ARRAY_FIELDS,
@@ -197,6 +198,30 @@ class CaptureStore:
         return "truth" in self.group
 
     @property
+    def response(self) -> tuple[np.ndarray, dict[str, Any]] | None:
+        """An ``"RGB"`` capture's camera response and its attributes (``method``, ``source``):
+        ``(n_cam, 2**bit_depth, 3)`` float64, relative exposure per code (``btf import-images``); None
+        for a raw capture (docs/capture-store.md, "Camera response")."""
+        if "response" not in self.group:
+            return None
+        arr = self.group["response"]
+        return np.asarray(arr[...]), dict(arr.attrs)
+
+    def write_response(self, response: np.ndarray, info: Mapping[str, Any]) -> None:
+        """Write the camera response of an ``"RGB"`` capture (one chunk) and its attributes ``info``
+        (``method``: the merge that goes with it, ``source``: calibrated from which brackets, or a file)."""
+        self._writable()
+        r = np.asarray(response, dtype=np.float64)
+        want = (self.n_cam, 2 ** int(self.meta.bit_depth), 3)
+        if r.shape != want or not np.isfinite(r).all() or (r < 0).any():
+            raise ValueError(f"{self.path}: response must be finite, >= 0 and of shape {want} (camera, code, "
+                             f"channel), got shape {r.shape}")
+        arr = create_array(self.group, "response", shape=want, dtype="float64", chunks=want, fill_value=0,
+                           dimension_names=["camera", "code", "channel"], compressors=None, overwrite=True)
+        arr[...] = r
+        arr.attrs.put(to_json_attr(dict(info)))
+
+    @property
     def material(self) -> dict[str, Any] | None:
         """``{"material_id", "class"}`` of a simulated capture (from its ground truth); ``None`` for a
         capture of a real sample, whose class the model database is told separately."""
@@ -353,7 +378,7 @@ class CaptureStore:
         t, c = self._view_index(t, c)
         plan = self.meta.plan_shot is not None
         idx = np.flatnonzero(self.planned[t, c])
-        shape = (len(idx) if plan else self.n_illum, self.n_exp, *self.roi_shape)
+        shape = (len(idx) if plan else self.n_illum, self.n_exp, *self.roi_shape, *self.raw.shape[6:])
         frames = self._check_frames(frames, shape, f"frames of view (t, c)=({t}, {c})"
                                     + (" (its planned illuminations)" if plan else ""))
         et = np.asarray(exposure_time, dtype=np.float64)
@@ -370,6 +395,7 @@ class CaptureStore:
         if not plan:
             write_chunk_aligned(self.raw, (t, c), frames)
             write_chunk_aligned(self.group["exposure_time"], (t, c), et)
+            kill_point("chunk-written")
             write_chunk_aligned(self.group["written"], (t, c), np.ones(self.n_illum, np.uint8))
             return
         full_et = np.zeros((self.n_illum, self.n_exp))
@@ -377,6 +403,7 @@ class CaptureStore:
         for k, i in enumerate(idx.tolist()):
             write_chunk_aligned(self.raw, (t, c, i), frames[k])        # one chunk per illumination
         write_chunk_aligned(self.group["exposure_time"], (t, c), full_et)
+        kill_point("chunk-written")
         write_chunk_aligned(self.group["written"], (t, c), self.planned[t, c].astype(np.uint8))
 
     def write_dark_frames(self, frames: np.ndarray, *, camera: int | None = None) -> None:
@@ -428,6 +455,7 @@ class CaptureStore:
         lv0 = (t * self.n_cam + c) * n
         write_chunk_aligned(truth["btf"], slice(lv0, lv0 + n), np.asarray(btf, np.float32))
         write_chunk_aligned(truth["btf_2x"], slice(lv0, lv0 + n), np.asarray(btf_2x, np.float32))
+        kill_point("chunk-written")
         write_chunk_aligned(truth["written"], (t, c), np.ones((), np.uint8))
 
     def write_truth_directions(self, light_dir: np.ndarray, view_dir: np.ndarray, lv_index: np.ndarray) -> None:

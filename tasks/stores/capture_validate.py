@@ -34,6 +34,9 @@ from tasks.stores.capture_schema import (
     SOURCES,
     TRUTH_ARRAYS,
     UNITS,
+    RAW_RGB_SPEC,
+    RESPONSE_SPEC,
+    RGB_PATTERN,
     expected_chunks,
     row_major_lv_index,
     trailing_steps_filled,
@@ -119,8 +122,8 @@ def check_attrs(attrs: Mapping[str, Any], problems: list[Problem], *, in_memory:
         P(Problem(ROOT_ATTRS, "device", "a non-empty string", repr(v), "set the device name"))
 
     v, ok = get("bayer_pattern")
-    if ok and v not in BAYER_PATTERNS:
-        P(Problem(ROOT_ATTRS, "bayer_pattern", f"one of {', '.join(BAYER_PATTERNS)}", repr(v),
+    if ok and v not in BAYER_PATTERNS + (RGB_PATTERN,):
+        P(Problem(ROOT_ATTRS, "bayer_pattern", f"one of {', '.join(BAYER_PATTERNS + (RGB_PATTERN,))}", repr(v),
                   "give the 2x2 top-left block of the raw frame read row-major "
                   "(check the camera's CFA / LibRaw raw_pattern for the ROI origin)"))
 
@@ -269,6 +272,8 @@ def check_shapes(
                            "n_turn * n_cam * n_leds")
         info = infos[name]
         dtype, axes, chunk_rule = spec_all[name]
+        if name == "raw" and len(info.shape) == len(RAW_RGB_SPEC[1]):     # an "RGB" capture (btf import-images)
+            dtype, axes, chunk_rule = RAW_RGB_SPEC
         if info.dtype != dtype:
             problems.append(Problem(
                 name, None, f"dtype {dtype}", f"dtype {info.dtype}",
@@ -460,7 +465,7 @@ def _check_cameras(data: Mapping[str, np.ndarray], problems: list[Problem]) -> N
         problems += _nonfinite("camera_t", ct, "(camera, xyz)", _CALIB)
     ta = data.get("turntable_angle")
     if ta is not None:
-        problems += _nonfinite("turntable_angle", ta, "(turntable,)", "check the manifest")
+        problems += _nonfinite("turntable_angle", ta, "(turntable,)", _CALIB)   # the dome's, not the manifest's
 
 
 def _check_homographies(data: Mapping[str, np.ndarray], attrs: Mapping[str, Any], sizes: AxisSizes,
@@ -699,11 +704,35 @@ def validate_group(
         sizes.seed("tex2_row", 2 * ts[0], "2 * attrs['texture_shape'][0]")
         sizes.seed("tex2_col", 2 * ts[1], "2 * attrs['texture_shape'][1]")
     usable = check_shapes(infos, sizes, problems)
+    _check_rgb_capture(members, infos, attrs, problems)
     data = check_content(infos, usable, sizes, attrs, problems, planned=planned)
     _check_chunk_files(group, data, attrs, problems)
     _check_completeness(data, attrs, sizes, problems,
                         require_complete=require_complete, check_flag=check_flag, planned=planned)
     return problems
+
+
+def _check_rgb_capture(members: Mapping[str, Any], infos: Mapping[str, ArrayInfo], attrs: Mapping[str, Any],
+                       problems: list[Problem]) -> None:
+    """An ``"RGB"`` capture (``btf import-images``) has ``raw``'s channel axis and ``response`` ``(n_cam,
+    2**bit_depth, 3)``, finite and >= 0; a Bayer capture has no channel axis."""
+    rgb, raw, node = attrs.get("bayer_pattern") == RGB_PATTERN, infos.get("raw"), members.get("response")
+    fix = "recreate the store (btf import-images --overwrite, or give --response FILE)"
+    if raw is not None and rgb != (len(raw.shape) == len(RAW_RGB_SPEC[1])):
+        problems.append(Problem("raw", None, "a channel axis of 3 exactly when bayer_pattern is 'RGB'",
+                                f"shape {raw.shape}, bayer_pattern {attrs.get('bayer_pattern')!r}", fix))
+    if not rgb:
+        return
+    bd, n_cam = attrs.get("bit_depth"), raw.shape[1] if raw is not None else None
+    want = (n_cam, 2 ** bd if isinstance(bd, int) else None, 3)
+    if not isinstance(node, zarr.Array) or str(node.dtype) != RESPONSE_SPEC[0] or tuple(node.shape) != want:
+        found = "nothing" if not isinstance(node, zarr.Array) else f"{node.dtype} {tuple(node.shape)}"
+        problems.append(Problem("response", None, f"{RESPONSE_SPEC[0]} {want} (camera, code, channel)", found, fix))
+        return
+    r = np.asarray(node[...])
+    bad = np.argwhere(~(np.isfinite(r) & (r >= 0)))
+    if bad.size:
+        problems.append(Problem("response", fmt_idx(bad[0]), "finite and >= 0", repr(float(r[tuple(bad[0])])), fix))
 
 
 #: Frame arrays whose chunks a resume marker says were written: ``array -> (marker, marker axes)``. Dark

@@ -271,5 +271,14 @@ def read_G(group: zarr.Group) -> "sparse.csr_matrix":
 
     arr = group["G"]
     step = max(1, int(arr.chunks[0]))
-    return sparse.vstack([as_sparse_G(np.asarray(arr[r:r + step])) for r in range(0, arr.shape[0], step)],
-                         format="csr")
+    blocks = []
+    for r in range(0, arr.shape[0], step):
+        block = np.asarray(arr[r:r + step])
+        bad = np.argwhere(~np.isfinite(block))
+        if bad.size:
+            i, j = int(bad[0][0]), int(bad[0][1])
+            raise ValueError(f"{getattr(group.store, 'root', group.store)}: G[{r + i}, {j}] = {float(block[i, j])!r} "
+                             "is not finite; ingest the plan capture again (`btf ingest CAPTURE --out ... "
+                             "--overwrite`)")
+        blocks.append(as_sparse_G(block))
+    return sparse.vstack(blocks, format="csr")

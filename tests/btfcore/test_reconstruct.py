@@ -403,9 +403,13 @@ def test_ill_conditioned_pinv_and_thresholded_solves_warn_with_the_figure_and_th
     assert op.condition > ILL_CONDITIONED_SOLVE
     variance = np.ones(30)
     variance[0] = 100.0                                       # the brightest row is the one dropped
+    # thresholded: U~ is ~1e8 worse conditioned than U, so it falls back to the projection in that direction
+    # (the fix, no warning; tests/btfcore/test_thresholded_fallback.py); an ill-conditioned U itself warns
+    op = solve_operator(U, method="thresholded", variance=variance)
+    assert op.dropped.tolist() == [0] and op.fallback == 1 and op.condition < 10
     with pytest.warns(IllConditionedWarning, match=r"U~ \(U without the dropped rows\).*method='projection'"):
-        op = solve_operator(U, method="thresholded", variance=variance)
-    assert op.dropped.tolist() == [0] and op.condition > ILL_CONDITIONED_SOLVE
+        solve_operator(np.random.default_rng(1).normal(size=(30, 2)) * [1.0, 1e-7], method="thresholded",
+                       variance=variance)
     # regularised: the fix, no warning (pyproject turns BtfWarning into errors)
     op = solve_operator(U, np.ones(2), method="tikhonov", rows=np.arange(1, 30), lam=0.01)
     assert op.condition < ILL_CONDITIONED_SOLVE

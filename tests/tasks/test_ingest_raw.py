@@ -237,7 +237,7 @@ def test_an_image_given_to_the_raw_path_is_named(tmp_path, kind):
     name = {"png": "PNG", "jpg": "JPEG", "tif": "TIFF"}[kind]
     text = str(info.value)
     assert f"(img.{kind}): a {name} image, not a camera raw file" in text
-    assert "TIFF, PNG or JPEG images are not supported yet" in text
+    assert "TIFF, PNG or JPEG images with `btf import-images`" in text
     assert "corrupt, truncated" not in text
 
 

@@ -109,7 +109,9 @@ def test_chunked_equals_in_memory_on_ubo2014(source, request, tmp_path, dask_cli
     assert _read(src).attrs["complete"]
 
 
-def test_identity_on_the_source_sampling(tiny_btf, tmp_path, dask_client):
+@pytest.mark.parametrize("capture", ["tiny_btf", "tiny_btf_nonideal"])     # the ideal and a non-ideal dome
+def test_identity_on_the_source_sampling(capture, request, tmp_path, dask_client):
+    tiny_btf = request.getfixturevalue(capture)
     s = _read(tiny_btf)
     B, L, V = s["btf"][...], s["light_dir"][...], s["view_dir"][...]
     # one turntable position: the rows are every LED with every camera, view-major as the target

@@ -1,0 +1,473 @@
+"""The kill matrix (issue 19, item 2): every writing stage SIGKILLed at several points resumes
+bit-identically.
+
+For each stage that writes a store (:func:`kill_matrix`): one clean reference run; then the same
+command into another output, SIGKILLed in turn at its kill points (:mod:`tasks.faults`,
+``BTF_KILL_AT``), each run resuming what the one before left; a rerun that completes and reports as
+skipped exactly what was finished; where the stage stages replacements, an ``--overwrite`` killed
+between the two renames of its commit, finished by the next run; and a run into a fresh output that
+completes although one Dask worker kills itself mid-chunk (``BTF_KILL_WORKER_ONCE``). Every array
+and content attribute of each output must equal the reference's. Single-file outputs are killed
+before the rename that puts the file in place (:func:`file_matrix`).
+
+The commands are real ``btf`` command lines (``flows.cli.main``) in processes forked from a fork
+server that imported the pipeline once (``kill_runner``), on the session's Prefect server and Dask
+cluster (an ``address`` profile): about a second per command instead of 15 s for a cold ``btf``
+(docs/decisions.md, "Issue 19: kill matrix").
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import pytest
+import zarr
+
+import kill_runner  # tests/flows is on sys.path (pytest's rootdir insertion), and so on the fork server's
+from tasks.staging import staging_path
+
+#: Attributes that differ between two runs of the same command by design: times and run records.
+RUN_ATTRS = frozenset({"provenance", "created", "created_at", "seconds", "timing", "timings", "wall_seconds"})
+
+
+@dataclass
+class Run:
+    """One finished ``btf`` process."""
+
+    code: int
+    out: str
+    err: str
+    seconds: float
+
+    def summary(self) -> dict[str, Any]:
+        return json.loads(self.out)
+
+
+class Btf:
+    """``btf(*args)``: a real ``btf`` command in a forked process on the session's Prefect server and Dask cluster."""
+
+    def __init__(self, client: Any, profile: Path, logs: Path):
+        self.client, self.profile, self.logs = client, profile, logs
+        self.context = multiprocessing.get_context("forkserver")
+        self.context.set_forkserver_preload(kill_runner.PRELOAD)
+        self.count = 0
+        self.seconds: list[tuple[str, float]] = []
+
+    def __call__(self, *args: Any, environ: dict[str, str] | None = None) -> Run:
+        self.count += 1
+        out, err = self.logs / f"{self.count}.out", self.logs / f"{self.count}.err"
+        argv = ["--no-progress", "--cluster", str(self.profile), *map(str, args)]
+        clients = self._clients()
+        start = time.perf_counter()
+        process = self.context.Process(target=kill_runner.run_cli, args=(argv, environ or {}, str(out), str(err)))
+        process.start()
+        process.join(300)
+        if process.exitcode is None:
+            process.kill()
+            process.join()
+        seconds = time.perf_counter() - start
+        test = os.environ.get("PYTEST_CURRENT_TEST", "").split("::")[-1].split(" ")[0]
+        self.seconds.append((f"{test}: {' '.join(map(str, args[:2]))} {environ or ''}", seconds))
+        run = Run(process.exitcode, out.read_text(), err.read_text(), seconds)
+        self._settle(clients)
+        return run
+
+    def ok(self, *args: Any, environ: dict[str, str] | None = None) -> Run:
+        run = self(*args, environ=environ)
+        assert run.code == 0, run.err[-3000:]
+        return run
+
+    def killed(self, at: str, *args: Any) -> Run:
+        """The command SIGKILLed by ``BTF_KILL_AT=at``: it must die by SIGKILL, at that point."""
+        run = self(*args, environ={"BTF_KILL_AT": at})
+        point, _, n = at.partition(":")
+        assert run.code == -9, f"BTF_KILL_AT={at}: exit code {run.code}, not SIGKILL\n{run.err[-3000:]}"
+        assert f"killed at {point} (occurrence {n or 1})" in run.err, run.err[-3000:]
+        return run
+
+    def with_worker_kill(self, sentinel: Path, *args: Any) -> Run:
+        """The command, completed although one Dask worker SIGKILLs itself at its first chunk
+        (``BTF_KILL_WORKER_ONCE``, set in the session's workers for this run)."""
+        n_workers = self.workers()
+
+        def arm(value: str | None) -> None:
+            if value is None:
+                os.environ.pop("BTF_KILL_WORKER_ONCE", None)
+            else:
+                os.environ["BTF_KILL_WORKER_ONCE"] = value
+
+        self.client.run(arm, str(sentinel))
+        try:
+            run = self.ok(*args)
+        finally:
+            self.client.run(arm, None)
+        assert sentinel.exists(), "no worker was killed: the run had no chunk left to write"
+        assert sentinel.read_text().split()[1] == "chunk-written"
+        self.client.wait_for_workers(n_workers, timeout=120)   # the nanny restarted it
+        return run
+
+    def workers(self) -> int:
+        return len(self.client.scheduler_info()["workers"])
+
+    def _clients(self) -> set[str]:
+        return set(self.client.run_on_scheduler(lambda dask_scheduler: list(dask_scheduler.clients)))
+
+    def _settle(self, clients: set[str], timeout: float = 120.0) -> None:
+        """Wait until the command's client is gone from the scheduler and no worker still runs one of its
+        tasks (a killed driver's tasks in flight finish on the shared cluster), so that runs do not overlap."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            running = self.client.run(lambda dask_worker: len(dask_worker.state.all_running_tasks))
+            if self._clients() <= clients and not any(running.values()):
+                return
+            time.sleep(0.05)
+        raise AssertionError(f"the cluster did not settle within {timeout:.0f} s")
+
+
+@pytest.fixture(scope="module")
+def btf(runtime_session, tmp_path_factory):
+    _profile_name, prefect_url, client = runtime_session
+    folder = tmp_path_factory.mktemp("kill-matrix")
+    profile = folder / "session-cluster.yaml"
+    profile.write_text(f"cluster:\n  kind: address\n  address: {client.scheduler.address}\n  timeout_s: 60\n"
+                       f"prefect:\n  api_url: {prefect_url}\n")
+    (folder / "logs").mkdir()
+    runner = Btf(client, profile, folder / "logs")
+    yield runner
+    from multiprocessing import forkserver
+
+    forkserver._forkserver._stop()             # the fork server holds the pipeline's imports: free them now
+    for label, seconds in runner.seconds:
+        print(f"{seconds:6.2f} s  {label}")
+    total = sum(s for _, s in runner.seconds)
+    print(f"\nkill matrix: {len(runner.seconds)} btf processes, {total:.1f} s, "
+          f"{total / max(1, len(runner.seconds)):.2f} s each")
+
+
+# ------------------------------------------------------------------------ comparing stores
+
+
+def assert_same_store(reference: Path, output: Path) -> None:
+    """Every array (dtype, shape, values) and every attribute but :data:`RUN_ATTRS` of the two Zarr
+    groups are equal, at every depth."""
+    _same_group(zarr.open_group(str(reference), mode="r", zarr_format=3),
+                zarr.open_group(str(output), mode="r", zarr_format=3), output.name)
+
+
+def _content(attrs: Any) -> dict[str, Any]:
+    return {k: v for k, v in dict(attrs).items() if k not in RUN_ATTRS}
+
+
+def _same_group(a: zarr.Group, b: zarr.Group, where: str) -> None:
+    assert _content(a.attrs) == _content(b.attrs), f"{where}: attributes differ"
+    arrays_a, arrays_b = dict(a.arrays()), dict(b.arrays())
+    assert sorted(arrays_a) == sorted(arrays_b), f"{where}: arrays {sorted(arrays_a)} vs {sorted(arrays_b)}"
+    for name, x in arrays_a.items():
+        y = arrays_b[name]
+        assert (x.dtype, x.shape) == (y.dtype, y.shape), f"{where}/{name}"
+        assert _content(x.attrs) == _content(y.attrs), f"{where}/{name}: attributes differ"
+        np.testing.assert_array_equal(x[...], y[...], err_msg=f"{where}/{name}")
+    groups_a, groups_b = dict(a.groups()), dict(b.groups())
+    assert sorted(groups_a) == sorted(groups_b), f"{where}: groups {sorted(groups_a)} vs {sorted(groups_b)}"
+    for name, sub in groups_a.items():
+        _same_group(sub, groups_b[name], f"{where}/{name}")
+
+
+def leftovers(output: Path) -> list[str]:
+    """Staging, trash and half-created folders beside ``output``."""
+    stem = output.name.removesuffix(".zarr")
+    names = (f"{stem}.partial.zarr", f"{stem}.replaced.zarr", f".{output.name}.creating",
+             f".{stem}.partial.zarr.creating")
+    return [name for name in names if (output.parent / name).exists()]
+
+
+def markers(store: Path, name: str = "written") -> int:
+    """How many resume markers of ``store`` are set."""
+    return int(np.count_nonzero(zarr.open_group(str(store), mode="r", zarr_format=3)[name][...]))
+
+
+def kill_matrix(btf: Btf, tmp_path: Path, args: Callable[[Path], tuple[Any, ...]], *,
+                store: Callable[[Path], Path] = lambda out: out, count: Callable[[Path], int] | None = None,
+                skipped: Callable[[Run, Path], tuple[int, int]] | None = None, staged: bool = True) -> None:
+    """The matrix of one stage, whose command line is ``args(OUT)`` and whose store is ``store(OUT)``.
+
+    A clean reference run; a run killed while its store is created (only the hidden skeleton is left),
+    its rerun killed once the store is in place (no marker set), that one's rerun killed after its first
+    finished chunk; a rerun that completes, skipping exactly the chunks whose markers were on disk
+    (``skipped(run, OUT)``: its report's ``(skipped, processed)``; chunks are counted by ``count(store)``,
+    default the set ``written`` markers); where the stage stages replacements (``staged``), an
+    ``--overwrite`` killed between the two renames of its commit, finished by the next run without
+    computing; and a run into a fresh output that completes although a worker kills itself mid-chunk.
+    Each output equals the reference in every array and content attribute.
+    """
+    count = count or markers
+    reference, out, fresh = (tmp_path / name / "out.zarr" for name in ("reference", "killed", "worker-killed"))
+    for path in (reference, out, fresh):
+        path.parent.mkdir()
+    btf.ok(*args(reference))
+    total = count(store(reference))                      # the chunks (resume markers) of a finished store
+    assert total >= 1, total
+    target = store(out)
+    btf.killed("store-creating", *args(out))
+    assert not target.exists() and [name for name in leftovers(target) if name.endswith(".creating")]
+    btf.killed("store-created", *args(out))
+    written = target if target.exists() else staging_path(target)   # some stages build even a new output staged
+    assert written.exists() and count(written) == 0 and not [n for n in leftovers(target) if n.endswith(".creating")]
+    btf.killed("chunk-done:1", *args(out))
+    # the chunk the driver awaited, and those its workers finished after it was killed
+    done = count(written)
+    assert 1 <= done <= total, (done, total)
+    run = btf.ok(*args(out))
+    if skipped is not None:
+        assert skipped(run, out) == (done, total - done), run.out
+    assert not leftovers(target)
+    assert_same_store(store(reference), target)
+    if staged:
+        btf.killed("commit-between-renames", *args(out), "--overwrite")
+        stem = target.name.removesuffix(".zarr")
+        assert not target.exists() and sorted(leftovers(target)) == [f"{stem}.partial.zarr", f"{stem}.replaced.zarr"]
+        run = btf.ok(*args(out))                            # finishes the commit, computes nothing
+        if skipped is not None:
+            assert skipped(run, out)[1] == 0, run.out
+        assert not leftovers(target)
+        assert_same_store(store(reference), target)
+    btf.with_worker_kill(tmp_path / "worker-killed.sentinel", *args(fresh))
+    assert_same_store(store(reference), store(fresh))
+
+
+# ------------------------------------------------------------------------ inputs
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory, dask_client) -> Path:
+    """A tiny capture: one turntable position, 4 views x 16 LEDs, 8 x 8 texels."""
+    from tasks.simulate import SimulationConfig, simulate_database
+
+    out = tmp_path_factory.mktemp("kill-capture")
+    config = SimulationConfig(device="tiny", n_materials=1, seed=19, classes=("leather",), n_turntable=1,
+                              texture_size=8)
+    return Path(simulate_database(config, out, dask_client).stores[0])
+
+
+# ------------------------------------------------------------------------ the stages
+
+
+def test_ingest(btf, capture, tmp_path):
+    kill_matrix(btf, tmp_path, lambda out: ("ingest", capture, "--out", out),
+                skipped=lambda run, _: _counts(run.summary()["stages"]["ingest"], "views"))
+
+
+def _counts(summary: dict[str, Any], unit: str) -> tuple[int, int]:
+    return summary[f"{unit}_skipped"], summary[f"{unit}_processed"]
+
+
+def test_simulate(btf, tmp_path):
+    def args(out: Path) -> tuple[Any, ...]:
+        return ("simulate", "--device", "tiny", "--materials", "1", "--turntable", "1", "--texture-size", "8",
+                "--classes", "stone", "--seed", "23", "--out", out.parent)
+
+    def skipped(_run: Run, out: Path) -> tuple[int, int]:
+        stage = json.loads((out.parent / "report.json").read_text())["stages"]["simulate"]
+        return stage["views_skipped"], stage["views_rendered"]
+
+    kill_matrix(btf, tmp_path, args, store=lambda out: out.parent / "000-stone.zarr",
+                count=lambda store: markers(store, "truth/written"), skipped=skipped, staged=False)
+
+
+@pytest.fixture(scope="module")
+def ingested(capture, tmp_path_factory, dask_client) -> Path:
+    """``capture`` ingested with its regions of interest kept (for `btf superres`)."""
+    from tasks.ingest import ingest_capture
+
+    out = tmp_path_factory.mktemp("kill-ingested") / "roi.zarr"
+    ingest_capture(capture, out, dask_client, keep_roi=True)
+    return out
+
+
+def test_resample(btf, ingested, tmp_path):
+    source = zarr.open_group(str(ingested), mode="r", zarr_format=3)
+    sampling = tmp_path / "sampling.json"
+    sampling.write_text(json.dumps({"light_dirs": source["light_dir"][:16:4].tolist(),
+                                    "view_dirs": source["view_dir"][::16].tolist()}))
+    kill_matrix(btf, tmp_path, lambda out: ("resample", ingested, "--sampling", sampling, "--out", out),
+                skipped=lambda run, _: _counts(run.summary()["stages"]["resample"], "views"))
+
+
+def test_superres_apply(btf, ingested, tmp_path):
+    # bicubic: the same per-view tasks, markers and staging as the ESPCN, without training a network first
+    kill_matrix(btf, tmp_path, lambda out: ("superres", "apply", ingested, "--method", "bicubic", "--out", out),
+                skipped=lambda run, _: _counts(run.summary(), "views"))
+
+
+@pytest.fixture(scope="module")
+def database(tmp_path_factory, dask_client) -> Path:
+    """Two leather materials on the tiny dome (4 views x 16 LEDs, 8 x 8 texels each), ingested into one folder."""
+    from tasks.ingest import ingest_capture
+    from tasks.simulate import SimulationConfig, simulate_database
+
+    root = tmp_path_factory.mktemp("kill-db")
+    config = SimulationConfig(device="tiny", n_materials=2, seed=29, classes=("leather",), n_turntable=1,
+                              texture_size=8)
+    for capture in simulate_database(config, root / "captures", dask_client).stores:
+        ingest_capture(capture, root / "btf" / Path(capture).name, dask_client)
+    return root / "btf"
+
+
+#: Small bases for the tiny database (`btf build-db` options).
+SMALL_BASES = ("--k-log-y", "8", "--k-chroma", "4", "--k-merged", "16")
+
+
+def keyed_bases(model: Path) -> int:
+    """Basis groups of a model store with their resume marker (the ``key`` attribute)."""
+    group = zarr.open_group(str(model), mode="r", zarr_format=3)
+    return sum(1 for _, sub in group.groups() for _ in _keyed(sub))
+
+
+def _keyed(group: zarr.Group):
+    if "key" in group.attrs:
+        yield group
+    for _, sub in group.groups():
+        yield from _keyed(sub)
+
+
+def test_build_db(btf, database, tmp_path):
+    def args(out: Path) -> tuple[Any, ...]:
+        return ("build-db", database, *SMALL_BASES, "--out", out.parent)
+
+    kill_matrix(btf, tmp_path, args, store=lambda out: out.parent / "model.zarr", count=keyed_bases,
+                staged=False)
+
+
+@pytest.fixture(scope="module")
+def model(btf, database, tmp_path_factory) -> Path:
+    """The model database of ``database`` (`btf build-db`, small bases)."""
+    out = tmp_path_factory.mktemp("kill-model") / "model"
+    btf.ok("build-db", database, *SMALL_BASES, "--out", out)
+    return out
+
+
+def test_reconstruct(btf, database, model, tmp_path):
+    kill_matrix(btf, tmp_path, lambda out: ("reconstruct", database / "000-leather.zarr", "--model", model, "--class",
+                                            "leather", "--out", out),
+                skipped=lambda run, _: _counts(run.summary(), "bands"))
+
+
+def test_import_btf(btf, database, tmp_path):
+    source = tmp_path / "a.btf"
+    btf.ok("export", database / "000-leather.zarr", "--format", "dfmf", "--precision", "single", "--out", source)
+    kill_matrix(btf, tmp_path, lambda out: ("import-btf", source, "--out", out, "--class", "leather",
+                                            "--material-id", "leather-a"),
+                skipped=lambda run, _: (run.summary()["chunks_skipped"], run.summary()["chunks_written"]))
+
+
+def raw_folder(folder: Path, write_dng, scale: bool) -> Path:
+    """DNG brackets of 4 views x 2 illuminations x 2 exposures (8x apart) and their manifest; ``scale``: the
+    second exposure is 8x brighter, as its time says (else the same frame, which import-raw flags)."""
+    base = np.random.default_rng(2).integers(100, 480, (4, 2, 72, 80))
+    folder.mkdir()
+    lines = ["file,turntable,camera,illumination,exposure"]
+    for c, i, e in np.ndindex(4, 2, 2):
+        name = f"c{c}_l{i}_e{e}.dng"
+        frame = 64 + (base[c, i] - 64) * (8**e if scale else 1)
+        write_dng(folder / name, frame.astype(np.uint16), "RGGB", 0.01 * 8**e)
+        lines.append(f"{name},0,{c},{i},{e}")
+    (folder / "manifest.csv").write_text("\n".join(lines) + "\n")
+    return folder
+
+
+def test_import_raw(btf, write_dng, tmp_path):
+    folder = raw_folder(tmp_path / "raw", write_dng, scale=True)
+    kill_matrix(btf, tmp_path, lambda out: ("import-raw", folder, "--manifest", folder / "manifest.csv", "--device",
+                                            "tiny", "--out", out), staged=False, count=views_written)
+
+
+def test_import_raw_keeps_bracket_warnings_across_a_kill(btf, write_dng, tmp_path):
+    folder = raw_folder(tmp_path / "raw", write_dng, scale=False)
+    args = ("import-raw", folder, "--manifest", folder / "manifest.csv", "--device", "tiny", "--out")
+    reference = json.loads(btf.ok(*args, tmp_path / "reference.zarr").out)["bracket_warnings"]
+    assert len(reference) == 8                                   # every bracket flagged
+    btf.killed("chunk-done:1", *args, tmp_path / "out.zarr")
+    btf.ok(*args, tmp_path / "out.zarr")
+    assert zarr.open_group(str(tmp_path / "out.zarr"), mode="r").attrs["bracket_warnings"] == reference
+
+
+def views_written(capture: Path) -> int:
+    """Views of a capture store whose every illumination has its marker."""
+    return int(zarr.open_group(str(capture), mode="r", zarr_format=3)["written"][...].all(axis=-1).sum())
+
+
+def test_ingest_measurement(btf, tmp_path):
+    """`btf ingest` of a sparse plan's capture writes a measurement store (blocks of measured rows)."""
+    from btfcore.acquisition.plan import ExposureModel, sparse_plan
+    from btfcore.dome import get_device
+    from tasks.plan import write_plan
+
+    device = get_device("tiny")
+    pairs = np.argwhere(np.random.default_rng(0).random((device.n_turn, device.n_leds)) < 0.4)
+    plan = tmp_path / "sparse.json"
+    write_plan(sparse_plan(device, pairs, ExposureModel(single_ms=(1.0, 10.0, 100.0, 1000.0))), plan, device=device)
+    btf.ok("simulate", "--plan", plan, "--device", "tiny", "--materials", "1", "--seed", "3", "--classes", "leather",
+           "--texture-size", "8", "--out", tmp_path / "planned")
+    capture = tmp_path / "planned" / "000-leather.zarr"
+    kill_matrix(btf, tmp_path, lambda out: ("ingest", capture, "--out", out))
+
+
+# ------------------------------------------------------------------------ single-file outputs
+
+
+def file_matrix(btf: Btf, tmp_path: Path, args: Callable[[Path], tuple[Any, ...]], files: tuple[str, ...],
+                replace: tuple[str, ...] = (), name: str = "out") -> None:
+    """A command whose output ``OUT`` (named ``name``) is a file, or a folder of ``files``: killed after
+    writing its (first) file beside its path, before the rename (``file-replace``), nothing is at the
+    path; the rerun writes the reference's bytes and leaves nothing else; a run replacing them
+    (``replace``: e.g. ``--overwrite``) killed at the same point leaves them as they were."""
+    reference, out = tmp_path / "reference" / name, tmp_path / "killed" / name
+    for path in (reference, out):
+        path.parent.mkdir()
+    btf.ok(*args(reference))
+    expected = {file: _file_content(reference / file) for file in files}
+    btf.killed("file-replace", *args(out))
+    assert not (out / files[0]).exists()
+    btf.ok(*args(out))
+    assert {file: _file_content(out / file) for file in files} == expected
+    assert sorted(p.name for p in out.parent.iterdir()) == [name], "leftovers beside the output"
+    if out.is_dir():
+        assert sorted(p.name for p in out.iterdir()) == sorted(files), "leftovers in the output"
+    before = {file: (out / file).read_bytes() for file in files}
+    btf.killed("file-replace", *args(out), *replace)
+    assert {file: (out / file).read_bytes() for file in files} == before
+
+
+def _file_content(path: Path) -> Any:
+    """A file's bytes; a JSON file's document without its run records (:data:`RUN_ATTRS`)."""
+    if path.suffix != ".json":
+        return path.read_bytes()
+    return _content(json.loads(path.read_text()))
+
+
+def test_export(btf, ingested, tmp_path):
+    file_matrix(btf, tmp_path, lambda out: ("export", ingested, "--format", "dfmf", "--precision", "single",
+                                            "--out", out), files=("",), replace=("--overwrite",), name="out.btf")
+
+
+def test_render(btf, ingested, tmp_path):
+    file_matrix(btf, tmp_path, lambda out: ("render", ingested, "--size", "16", "--out", out), files=("",),
+                name="out.png")
+
+
+def test_plan(btf, tmp_path):
+    file_matrix(btf, tmp_path, lambda out: ("plan", "--device", "tiny", "--strategy", "multiplexed", "--out", out),
+                files=("plan.json", "plan.csv"))
+
+
+def test_sample(btf, model, tmp_path):
+    file_matrix(btf, tmp_path, lambda out: ("sample", "--model", model, "--class", "leather", "--basis", "als",
+                                            "--n", "24", "--out", out), files=("",),
+                name="samples.json")
