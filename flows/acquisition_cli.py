@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 
-PLAN_STRATEGIES: tuple[str, ...] = ("full", "sparse", "multiplexed", "sparse-multiplexed", "bootstrap")
+PLAN_STRATEGIES: tuple[str, ...] = ("full", "sparse", "multiplexed", "sparse-multiplexed", "bootstrap", "patterns")
 
 #: What to do when a multiplexed plan's predicted gain is below 1 (docs/acquisition-planning.md).
 _MUX_ADVICE = ("capture single-light (--strategy full or sparse), give the multiplexed patterns longer exposures "
@@ -51,7 +51,12 @@ breakdown (btfcore.acquisition.time_model; docs/acquisition-planning.md). Strate
 pairs of --samples, all cameras), multiplexed (S-matrix patterns), sparse-
 multiplexed (at each turntable position the sampled LEDs multiplexed with
 their own S-matrix), bootstrap (VMV §4.2: the quadrant opposite the cameras
-single-light, the others with smaller S-matrices). --material picks the
+single-light, the others with smaller S-matrices), patterns (issue 20: --patterns M
+basis-aware on/off LED patterns per position for the ALS basis of --model's
+--class, chosen to minimise the predicted reconstruction error under photon
+and read noise and saturation; the summary compares them with the full
+S-matrix and with S-matrix rows at equal shots and equal exposure time).
+--material picks the
 shutter times of VMV Table 2 (cloth, leather, wood). A plan with multiplexed
 shots also reports its predicted multiplexing gain (SNR of the demultiplexed
 result over single-light capture under the device's photon + read noise, at
@@ -120,7 +125,15 @@ def add_plan_arguments(p: argparse.ArgumentParser) -> None:
                         "m LEDs, the same electrons; 0: the single-light shutter times) [default: 1]")
     p.add_argument("--signal-fraction", type=float, default=0.8, metavar="F",
                    help="texel signal for the predicted multiplexing gain: F x the full well under one LED at the "
-                        "longest single-light shutter time, in (0, 1] [default: 0.8]")
+                        "longest single-light shutter time, in (0, 1]; --strategy patterns: the brightest texel of a "
+                        "typical single-LED image at the chosen shutter time [default: 0.8]")
+    p.add_argument("--patterns", type=_positive_int, default=None, metavar="M",
+                   help="--strategy patterns: patterns per turntable position (e.g. a quarter of the LEDs)")
+    p.add_argument("--model", default=None, metavar="MODEL_DIR",
+                   help="--strategy patterns: output folder of `btf build-db` (or its model.zarr) of this device")
+    p.add_argument("--class", dest="cls", default=None, metavar="CLS",
+                   help="--strategy patterns: material class whose ALS basis the patterns serve (classes/CLS/als)")
+    p.add_argument("--seed", type=int, default=0, help="--strategy patterns: seed of the design [default: 0]")
     p.add_argument("--out", required=True, metavar="PLAN_DIR", help="output folder (plan.json, plan.csv)")
 
 
@@ -229,6 +242,15 @@ def _plan(args: argparse.Namespace) -> dict[str, Any]:
                          "fraction of the full well")
     if args.samples and args.strategy not in ("sparse", "sparse-multiplexed"):
         raise ValueError(f"--samples applies to the sparse strategies, not {args.strategy!r}; drop it")
+    pattern_args = {"--patterns": getattr(args, "patterns", None), "--model": getattr(args, "model", None),
+                    "--class": getattr(args, "cls", None)}
+    if args.strategy == "patterns" and None in pattern_args.values():
+        missing = [k for k, v in pattern_args.items() if v is None]
+        raise ValueError(f"--strategy patterns needs {', '.join(missing)}: e.g. --patterns {device.n_leds // 4} "
+                         "--model MODEL_DIR --class leather (a `btf build-db` model of this device)")
+    if args.strategy != "patterns" and any(v is not None for v in pattern_args.values()):
+        given = [k for k, v in pattern_args.items() if v is not None]
+        raise ValueError(f"{', '.join(given)} apply to --strategy patterns, not {args.strategy!r}; drop them")
     if args.strategy == "full":
         plan = P.full_single_light_plan(device, exposure)
     elif args.strategy == "sparse":
@@ -237,12 +259,19 @@ def _plan(args: argparse.Namespace) -> dict[str, Any]:
         plan = P.multiplexed_plan(device, exposure)
     elif args.strategy == "sparse-multiplexed":
         plan = P.sparse_multiplexed_plan(device, _selection(args, device), exposure, select="leds")
+    elif args.strategy == "patterns":
+        from tasks.plan import plan_patterns
+
+        plan = plan_patterns(args.model, args.cls, device, args.patterns, exposure=exposure, seed=args.seed,
+                             signal_fraction=fraction)
     else:
         plan = P.bootstrapping_plan(device, exposure)
     out = Path(args.out)
     params = TimeModelParams()
-    mux = P.multiplexing_gain(plan, full_well_e=device.sensor.full_well_e,
-                              read_noise_e=device.sensor.read_noise_e, signal_fraction=fraction)
+    # designed patterns are not demultiplexed (one solve on the basis): no multiplexing gain
+    mux = None if args.strategy == "patterns" else P.multiplexing_gain(
+        plan, full_well_e=device.sensor.full_well_e, read_noise_e=device.sensor.read_noise_e,
+        signal_fraction=fraction)
     if mux is not None and mux["loses"]:
         mux["advice"] = _MUX_ADVICE
     write_plan(plan, out / "plan.json", out / "plan.csv", device=device, time_params=params, multiplexing=mux)
@@ -262,6 +291,14 @@ def _plan(args: argparse.Namespace) -> dict[str, Any]:
               f"{mux['gain']:.3f} < 1 on {device.name} at this exposure; {_MUX_ADVICE}", file=sys.stderr)
     extra = {} if mux is None else {"multiplexing_gain": round(mux["gain"], 4),
                                     "multiplexing_loses": mux["loses"], "multiplexing": mux}
+    if args.strategy == "patterns":
+        extra = {"patterns": args.patterns, "class": args.cls,
+                 "predicted_relative_error": plan.parameters["predicted_relative_error"],
+                 "comparison": plan.parameters["comparison"]}
+        if not getattr(args, "quiet", False):
+            for name, c in plan.parameters["comparison"].items():
+                print(f"  {name:34s} m = {c['m']:4d}: predicted relative error {c['predicted_relative_error']:.4g}"
+                      f", time {c['predicted_time_s']:,.0f} s", file=sys.stderr)
     return {"command": "plan", "device": device.name, "strategy": plan.strategy,
             "material": args.material, "out": str(out.resolve()),
             "plan_json": str((out / "plan.json").resolve()), "plan_csv": str((out / "plan.csv").resolve()),

@@ -236,8 +236,9 @@ def evaluate(p: argparse.ArgumentParser) -> None:
                         "single exposure of the multiplexed captures, 1 %% LED drift, 0.1 px registration error, "
                         "1e-4 hot pixels) and/or FIELD=VALUE overrides (docs/simulator-physics.md, \"A dome that is "
                         "not ideal\") [default: the ideal dome]")
-    p.add_argument("--report", default="report.json", metavar="PATH",
-                   help="where to write the metrics [default: report.json]")
+    p.add_argument("--report", default=None, metavar="PATH",
+                   help="ingest: where to write the metrics [default: report.json]; acquisition and superres "
+                        "write report.json and report.html into --out")
     from flows.superres_cli import add_evaluate_superres_arguments
 
     add_evaluate_superres_arguments(p)

@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from flows import arguments
+from flows.adaptive_cli import ACQUIRE_HELP, add_acquire_arguments, run_acquire
 from flows.acquisition_cli import (PLAN_HELP, RENDER_HELP, SAMPLE_HELP, add_plan_arguments, add_render_arguments,
                                    add_sample_arguments, run_plan, run_render, run_sample)
 from flows.bonn_cli import (EXPORT_HELP, IMPORT_HELP, add_export_arguments, add_import_arguments, import_btf_flow,
@@ -221,7 +222,7 @@ def _evaluate(args: argparse.Namespace) -> int:
         raise ValueError(f"{args.truth} has no ground truth (truth/ group); give a simulated capture store")
     metrics = {"evaluate": args.what, "truth": str(args.truth), "btf": str(args.btf),
                **btf_error_against_truth(args.btf, args.truth)}
-    write_json(args.report, metrics)
+    write_json(args.report or "report.json", metrics)  # default not locked: only `ingest` writes it
     print(json.dumps(metrics, indent=2))
     return 0
 
@@ -540,6 +541,9 @@ COMMANDS: dict[str, Command] = {command.name: command for command in (
     Command("plan", help="acquisition plan (JSON + CSV) and its predicted acquisition time",
             description=PLAN_HELP, raw_description=True, add_arguments=add_plan_arguments, run=run_plan,
             inputs={"samples": "--samples"}),
+    Command("acquire", help="adaptive capture until a predicted error target (--adaptive)", description=ACQUIRE_HELP,
+            raw_description=True, add_arguments=add_acquire_arguments, run=run_acquire,
+            inputs={"truth": "--truth", "model": "--model"}),
     Command("render", help="render a BTF store on a sphere, cylinder or plane to a PNG",
             description=RENDER_HELP, raw_description=True, add_arguments=add_render_arguments, run=run_render,
             inputs={"btf": "BTF", "env": "--env"}),

@@ -41,6 +41,7 @@ import numpy as np
 from btfcore.metrics import mpsnr, mre, mrmse
 from btfcore.superres.regions import rectify_regions, scale_homography, upsample_regions
 from btfcore.superres.scaling import area_downsample
+from tasks.faults import kill_point
 from tasks.ingest import led_scale
 from tasks.report import write_json
 from tasks.superres import SUPERRES_FACTOR, load_model, one_torch_thread, view_rows, with_regions
@@ -277,6 +278,7 @@ def test_material(btf_path: str, capture_path: str, others: str | None, normalis
             "training": {k: v[1] for k, v in trained.items()},
             "models": {k: str(Path(models_dir) / f"{name}-{k.replace('_', '-', 1)}.pt") for k in trained},
             "figures": figures, "seconds": round(time.perf_counter() - start, 2)}
+    kill_point("chunk-written")                                  # scored, its record not yet written
     write_json(cached, {"key": key, "result": result})
     return {**result, "reused": False}
 

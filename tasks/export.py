@@ -14,6 +14,7 @@ from typing import Sequence
 import numpy as np
 import zarr
 
+from tasks.faults import kill_point
 from tasks.stores.btf import BtfStore, open_btf_store
 
 
@@ -132,6 +133,7 @@ def export_exr(btf_path: str | os.PathLike, out_dir: str | os.PathLike, rows: Se
         tmp = path.with_suffix(".exr.tmp")
         with OpenEXR.File(header, {"RGB": texture}) as f:
             f.write(str(tmp))
+        kill_point("file-replace")
         tmp.replace(path)  # a finished file is never half-written
         written.append(path)
     return written

@@ -12,11 +12,12 @@ point                             where
 ``chunk-done``                    the driver has awaited one more finished task, whose resume marker
                                   is on disk (:func:`tasks.compute.wait_all`)
 ``chunk-written``                 a worker task has written a chunk's data but not yet its resume
-                                  marker (one line before each marker write)
+                                  marker (one line before each marker write), or computed a result
+                                  whose record is its marker (an evaluation's scores record)
 ``commit-start``                  a staged replacement is complete, before the first rename of
                                   :func:`tasks.staging.commit_staged`
 ``commit-between-renames``        the old output is renamed aside, the new one not yet in place
-``file-replace``                  a single-file output (Bonn file, PNG, model, samples, plan) is
+``file-replace``                  a single-file output (Bonn file, PNG, EXR, model, samples, plan) is
                                   written beside its path, before the rename that puts it in place
 ================================  ==========================================================
 

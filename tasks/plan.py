@@ -8,6 +8,10 @@ the LEDs on, the cameras, the shutter times and the number of exposure steps;
 a few ``# key: value`` comment lines above the header carry what is needed to
 read it back into a plan. Both read back to an equal plan (:func:`read_plan`).
 
+:func:`plan_patterns` designs the basis-aware patterns of ``btf plan --strategy
+patterns`` from a model store's class basis (issue 20,
+:mod:`btfcore.acquisition.illumination_patterns`).
+
 See ``docs/acquisition-planning.md``.
 """
 
@@ -21,13 +25,15 @@ import re
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from btfcore.acquisition.hadamard import is_s_matrix_order, s_matrix
-from btfcore.acquisition.plan import PLAN_SCHEMA, CapturePlan, Shot, validate_plan
+from btfcore.acquisition.plan import PLAN_SCHEMA, CapturePlan, ExposureModel, Shot, validate_plan
 from btfcore.dome import Device
 from btfcore.acquisition.time_model import TimeModelParams, predict_time
 from tasks.faults import kill_point
 
-__all__ = ["CSV_COLUMNS", "plan_to_csv_text", "read_plan", "read_plan_json", "write_plan"]
+__all__ = ["CSV_COLUMNS", "plan_patterns", "plan_to_csv_text", "read_plan", "read_plan_json", "write_plan"]
 
 #: Columns of the plan CSV, in order.
 CSV_COLUMNS: tuple[str, ...] = (
@@ -233,3 +239,94 @@ def read_plan(path: str | Path, device: Device | None = None) -> CapturePlan:
         except ValueError as exc:
             raise ValueError(f"{path}: {exc}") from None
     return plan
+
+
+# --------------------------------------------------------------------------- basis-aware patterns (issue 20)
+
+
+def _shutter_total_ms(plan: CapturePlan) -> float:
+    return float(sum(sum(shot.shutter_ms) for shot in plan.shots))
+
+
+def plan_patterns(model: str | Path, cls: str, device: Device, m: int, *, exposure: ExposureModel | None = None,
+                  seed: int = 0, signal_fraction: float = 0.8, sweeps: int = 1) -> CapturePlan:
+    """A ``patterns`` plan: ``m`` basis-aware binary LED patterns for the class' ALS basis of a model store.
+
+    Parameters
+    ----------
+    model : path
+        ``btf build-db`` output folder or its ``model.zarr``; its rows must be ``device``'s
+        (turntable, camera, LED) rows.
+    cls : str
+        Material class (``classes/<cls>/als``).
+    device : Device
+    m : int
+        Patterns per turntable position.
+    exposure : ExposureModel, optional
+        Shutter brackets of the shots (and of the S-matrix plans compared).
+    seed : int
+        Seed of the design's refinement order.
+    signal_fraction : float
+        The chosen shutter time as the fraction of the full well a typical single-LED image's brightest
+        texel reaches (:class:`~btfcore.acquisition.illumination_patterns.PatternModel` ``shutter_fill``);
+        brighter patterns are exposed shorter, to ``fill`` = 0.8.
+    sweeps : int
+        Refinement sweeps of :func:`~btfcore.acquisition.illumination_patterns.design_patterns`.
+
+    Returns
+    -------
+    plan : CapturePlan
+        Its ``parameters`` hold the model, class, basis size, the design's predicted relative error and
+        ``comparison``: the predicted errors and times of the full S-matrix, of ``m`` S-matrix rows chosen on
+        the same objective (equal shot count) and of as many S-matrix rows as fit in the patterns' total
+        shutter time (equal exposure time).
+
+    Raises
+    ------
+    ValueError
+        Bad store, class or basis (names which), or a basis whose rows are not the device's.
+    """
+    from btfcore.acquisition.hadamard import multiplexing_patterns
+    from btfcore.acquisition.illumination_patterns import PatternModel, design_patterns, expected_error, select_rows
+    from btfcore.acquisition.noise import SensorNoise
+    from btfcore.acquisition.plan import multiplexed_plan, patterns_plan
+    from tasks.sample import open_model, read_class_basis
+
+    group, store = open_model(model)
+    U, sigma, _ = read_class_basis(group, store, cls, "als")
+    n_rows = device.n_turn * device.n_cam * device.n_leds
+    if U.shape[0] != n_rows:
+        raise ValueError(f"{store}: classes/{cls}/als has {U.shape[0]} rows, device {device.name!r} "
+                         f"{device.n_turn} x {device.n_cam} x {device.n_leds} = {n_rows} (turntable, camera, LED) "
+                         "rows; plan for the device the model was built from")
+    if int(m) < 1:
+        raise ValueError(f"--patterns {m}: give at least one pattern")
+    exposure = exposure or ExposureModel()
+    noise = SensorNoise(float(device.sensor.full_well_e), float(device.sensor.read_noise_e))
+    pm = PatternModel(U, sigma, device.n_leds, noise, shutter_fill=float(signal_fraction))
+    S = multiplexing_patterns(device.n_leds)
+    rows_m = select_rows(pm, S, min(int(m), S.shape[0]))[1]
+    start = rows_m.patterns if int(m) <= S.shape[0] else None                # refine S-matrix rows (robust start)
+    design = design_patterns(pm, int(m), seed=seed, sweeps=sweeps, start=start)
+    full = multiplexed_plan(device, exposure)
+    mine = patterns_plan(device, design.patterns, exposure)
+    per_row = _shutter_total_ms(patterns_plan(device, S[:1], exposure, turntables=[0]))
+    m_eq = int(min(S.shape[0], max(1, np.floor(_shutter_total_ms(mine) / device.n_turn / per_row))))
+    rows_eq = select_rows(pm, S, m_eq)[1]
+
+    def entry(d, plan: CapturePlan) -> dict[str, Any]:
+        return {"m": d.m, "predicted_relative_error": d.relative_error,
+                "predicted_time_s": predict_time(plan).total_s, "shutter_total_ms": _shutter_total_ms(plan)}
+
+    comparison = {
+        "full-s-matrix": entry(expected_error(pm, S), full),
+        "s-matrix-rows-equal-shots": entry(rows_m, patterns_plan(device, rows_m.patterns, exposure)),
+        "s-matrix-rows-equal-exposure-time": entry(rows_eq, patterns_plan(device, rows_eq.patterns, exposure)),
+        "patterns": entry(design, mine),
+    }
+    parameters = {"model": str(store.resolve()), "class": cls, "basis": "als", "k": int(U.shape[1]),
+                  "seed": int(seed), "signal_fraction": float(signal_fraction), "peak_factor": pm.peak_factor,
+                  "full_well_e": noise.full_well_e, "read_noise_e": noise.read_noise_e, "fill": noise.fill,
+                  "predicted_relative_error": design.relative_error, "objective": design.objective,
+                  "leds_on": design.summary()["leds_on"], "comparison": comparison}
+    return patterns_plan(device, design.patterns, exposure, parameters=parameters)

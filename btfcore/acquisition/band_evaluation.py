@@ -8,7 +8,9 @@ noise-free truth BTF ``(n_lv, rows, w, 3)`` (linear RGB, rows
   from the linear truth (light superposes before the sensor), each image
   exposed by :func:`btfcore.acquisition.noise.expose`; every texture row's
   noise has its own seeded generator, so bands and halos see the same
-  measurement (:func:`noisy_rows`, :func:`measure_band`);
+  measurement (:func:`noisy_rows`, :func:`measure_band`); a strategy with its
+  own patterns (source ``'patterns'``) is measured with them and its own gains
+  (:func:`noisy_patterns`);
 * **demultiplexing** per view by least squares (VMV §3.2,
   :func:`demultiplex_views`) and the per-texture variance of the result
   reduced over bands (:func:`demultiplexed_moments`, :func:`moments_variance`;
@@ -31,12 +33,13 @@ noise-free truth BTF ``(n_lv, rows, w, 3)`` (linear RGB, rows
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-from btfcore.acquisition.noise import SensorNoise, expose
+from btfcore.acquisition.noise import SensorNoise, exposure_gain, expose
 from btfcore.acquisition.reconstruct import apply, measure, reconstruct_abtf
 from btfcore.acquisition.strategies import FLOOR_COMPUTED, Geometry, Strategy
 from btfcore.capture.demultiplex import demultiplex_operator
@@ -45,8 +48,8 @@ from btfcore.model.colour import LOG_YUV_EPS, from_log_yuv, log_luminance, to_lo
 __all__ = ["CHROMA_MAX", "DIVERGED_MRE_PERCENT", "DIVERGED_REL_L2_LOG_Y", "ILL_CONDITIONED", "LOG_Y_MAX",
            "BandScores", "BandTruth", "combine_moments", "conditioning", "demultiplex_views",
            "demultiplexed_moments", "divergence", "finish_scores", "floor_name", "image_maxima", "measure_band",
-           "moments_variance", "noise_free_band", "noisy_multiplexed", "noisy_rows", "noisy_single",
-           "reconstruct_band", "reconstruct_strategies", "score_band"]
+           "moments_variance", "noise_free_band", "noisy_multiplexed", "noisy_patterns", "noisy_rows", "noisy_single",
+           "pattern_maxima", "reconstruct_band", "reconstruct_strategies", "score_band", "with_pattern_gains"]
 
 #: Range a log-space reconstruction is clipped to before it is mapped back to RGB: log Y in
 #: [log eps, LOG_Y_MAX] (an unregularised solve can extrapolate to exp overflow), U/Y and V/Y in
@@ -113,6 +116,38 @@ def noisy_multiplexed(truth: np.ndarray, r0: int, gains: Gains, patterns: np.nda
     noise-free truth; the noise comes afterwards (docs/evaluation.md, "Noise model").
     """
     return _expose_rows(measure(truth, patterns=patterns), r0, gains[1], noise, seed, 1)
+
+
+def pattern_maxima(truth: np.ndarray, strategies: Sequence[Strategy]) -> dict[str, np.ndarray]:
+    """Brightest noise-free value ``(n_views * m,)`` of every image of each strategy with its own patterns."""
+    return {s.name: measure(truth, patterns=s.patterns).reshape(-1, truth[0].size).max(axis=1)
+            for s in strategies if s.source == "patterns"}
+
+
+def with_pattern_gains(strategies: Sequence[Strategy], maxima: Sequence[dict[str, np.ndarray]],
+                       noise: SensorNoise) -> list[Strategy]:
+    """The strategies, those with their own patterns given their images' gains (auto exposure to ``noise.fill``,
+    :func:`btfcore.acquisition.noise.exposure_gain`) from the maxima of every band (:func:`pattern_maxima`)."""
+    out = []
+    for s in strategies:
+        if s.source == "patterns":
+            s = dataclasses.replace(s, gains=exposure_gain(np.max([m[s.name] for m in maxima], axis=0), noise))
+        out.append(s)
+    return out
+
+
+def noisy_patterns(truth: np.ndarray, r0: int, gains: np.ndarray, patterns: np.ndarray, noise: SensorNoise | None,
+                   seed: Sequence[int] | None) -> np.ndarray:
+    """Every view of texture rows ``r0 : r0 + len`` under ``patterns`` ``(m, n_leds)``, ``(n_views * m, rows, w, 3)``.
+
+    Each image is exposed with its own gain of ``gains`` ``(n_views * m,)`` (from its maximum, as the
+    S-matrix images); the noise of texture row ``r`` comes from ``seed + [2, r]``. ``noise=None``: the
+    noise-free images (a floor).
+    """
+    mux = measure(truth, patterns=patterns)                                  # (I_views (x) M) B
+    if noise is None:
+        return mux
+    return _expose_rows(mux, r0, gains, noise, seed, 2)
 
 
 def noisy_rows(truth: np.ndarray, r0: int, gains: Gains, patterns: np.ndarray, geometry: Geometry,
@@ -183,7 +218,8 @@ def floor_name(strategy: str) -> str:
 
 
 def reconstruct_strategies(strategies: Sequence[Strategy], r0: int, r1: int, truth_halo: np.ndarray, g0: int,
-                           geometry: Geometry, measured: Measured, noise_free: Measured | None = None
+                           geometry: Geometry, measured: Measured, noise_free: Measured | None = None,
+                           noise: SensorNoise | None = None, seed: Sequence[int] | None = None
                            ) -> Iterator[tuple[Strategy, np.ndarray, np.ndarray | None]]:
     """Every strategy's reconstruction of texture rows r0:r1 and, with ``noise_free``, its noise-free floor.
 
@@ -206,6 +242,9 @@ def reconstruct_strategies(strategies: Sequence[Strategy], r0: int, r1: int, tru
         :func:`measure_band` of the band.
     noise_free : tuple, optional
         :func:`noise_free_band` of the band (None: no floors).
+    noise, seed : SensorNoise, sequence of int, optional
+        Measure the strategies with their own patterns (source ``'patterns'``,
+        :func:`noisy_patterns`); they need both.
 
     Yields
     ------
@@ -215,13 +254,18 @@ def reconstruct_strategies(strategies: Sequence[Strategy], r0: int, r1: int, tru
     _, single, mux, demux = measured
     caches: tuple[dict[str, np.ndarray], dict[str, np.ndarray]] = ({}, {})
     for strategy in strategies:
+        own = None
+        if strategy.source == "patterns":
+            if noise is None or seed is None:
+                raise ValueError(f"strategy {strategy.name} measures with its own patterns: pass noise and seed")
+            own = (noise, seed)
         recon = reconstruct_band(strategy, r0, r1, geometry.height, truth_halo, single, mux, g0, geometry, demux,
-                                 caches[0])
+                                 caches[0], own)
         floor = None
         if noise_free is not None and strategy.floor == FLOOR_COMPUTED:
             _, single0, mux0, demux0 = noise_free
             floor = np.asarray(reconstruct_band(strategy, r0, r1, geometry.height, truth_halo, single0, mux0, g0,
-                                                geometry, demux0, caches[1]), dtype=np.float32)
+                                                geometry, demux0, caches[1], (None, None)), dtype=np.float32)
         yield strategy, np.asarray(recon, dtype=np.float32), floor
 
 
@@ -271,12 +315,15 @@ def _to_rgb(x: np.ndarray) -> np.ndarray:
 
 def reconstruct_band(strategy: Strategy, r0: int, r1: int, height: int, truth_halo: np.ndarray,
                      single_halo: np.ndarray, mux: np.ndarray, g0: int, geometry: Geometry,
-                     demux: np.ndarray, log_cache: dict[str, np.ndarray] | None = None) -> np.ndarray:
+                     demux: np.ndarray, log_cache: dict[str, np.ndarray] | None = None,
+                     own: tuple[SensorNoise | None, Sequence[int] | None] | None = None) -> np.ndarray:
     """One strategy's reconstruction of texture rows r0:r1, linear RGB ``(n_lv, r1 - r0, w, 3)``.
 
     ``truth_halo`` and ``single_halo`` hold texture rows ``g0 : g0 + len`` (the ABTF halo);
     ``mux`` (the multiplexed measurement) and ``demux`` (it demultiplexed) rows r0:r1 only.
     ``log_cache`` keeps the log-space conversion of a whole source between the strategies of a band.
+    ``own`` = ``(noise, seed)`` measures a strategy with its own patterns (source ``'patterns'``,
+    :func:`noisy_patterns`; ``noise=None``: noise-free).
     """
     log_cache = {} if log_cache is None else log_cache
     a, b = r0 - g0, r1 - g0
@@ -285,6 +332,11 @@ def reconstruct_band(strategy: Strategy, r0: int, r1: int, height: int, truth_ha
         op = strategy.operators["rgb"]
         if strategy.source == "single":
             y = single_halo[strategy.rows, a:b]
+        elif strategy.source == "patterns":
+            if own is None or strategy.patterns is None or (own[0] is not None and strategy.gains is None):
+                raise ValueError(f"strategy {strategy.name} measures with its own patterns: it needs its patterns, "
+                                 "its images' gains and (noise, seed)")
+            y = noisy_patterns(truth_halo[:, a:b], r0, strategy.gains, strategy.patterns, *own)
         elif strategy.source == "demux":
             y = demux
         else:

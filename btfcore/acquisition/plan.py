@@ -67,6 +67,7 @@ __all__ = [
     "full_single_light_plan",
     "multiplexed_plan",
     "multiplexing_gain",
+    "patterns_plan",
     "sparse_multiplexed_plan",
     "sparse_plan",
     "validate_plan",
@@ -76,7 +77,7 @@ __all__ = [
 PLAN_SCHEMA: tuple[str, str] = ("btf-plan", "1.0")
 #: Strategy names a plan may carry.
 STRATEGIES: tuple[str, ...] = (
-    "full-single", "sparse", "multiplexed", "sparse-multiplexed", "bootstrapping", "custom",
+    "full-single", "sparse", "multiplexed", "sparse-multiplexed", "bootstrapping", "patterns", "custom",
 )
 
 
@@ -583,6 +584,44 @@ def multiplexed_plan(device: Device, exposure: ExposureModel | None = None, *,
     shots = [Shot(t, leds, cams, exposure.bracket_ms(len(leds)), group)
              for t in _turntables(device, turntables) for leds in rows]
     return _plan(device, "multiplexed", shots, {"exposure": exposure.to_dict(), "s_matrix_order": pat.shape[0]})
+
+
+def patterns_plan(device: Device, patterns: np.ndarray, exposure: ExposureModel | None = None, *,
+                  cameras: Sequence[int] | None = None, turntables: Sequence[int] | None = None,
+                  parameters: Mapping[str, Any] | None = None) -> CapturePlan:
+    """Given binary LED patterns at every turntable position (e.g. basis-aware ones, issue 20).
+
+    Parameters
+    ----------
+    device : Device
+    patterns : (m, n_leds) array_like of 0/1
+        One shot per pattern and position, in order; every pattern switches at least one LED on.
+    exposure : ExposureModel, optional
+        Bracket per pattern from its number of LEDs on.
+    cameras, turntables : sequence of int, optional
+    parameters : mapping, optional
+        Recorded with the plan (besides ``exposure`` and ``n_patterns``).
+
+    Returns
+    -------
+    plan : CapturePlan
+        Strategy ``"patterns"``, ``m * n_turn`` shots of group ``"P<m>"``.
+    """
+    exposure = exposure or ExposureModel()
+    cams = _cameras(device, cameras)
+    p = np.asarray(patterns)
+    if p.ndim != 2 or p.shape[1] != device.n_leds or not np.isin(p, (0, 1)).all():
+        raise ValueError(f"patterns must be (m, {device.n_leds}) on/off values for device {device.name!r}, "
+                         f"got shape {p.shape}")
+    empty = np.flatnonzero(p.sum(axis=1) == 0)
+    if p.shape[0] == 0 or empty.size:
+        raise ValueError(f"pattern {int(empty[0]) if empty.size else 0} switches no LED on; drop it")
+    group = f"P{p.shape[0]}"
+    rows = [tuple(np.flatnonzero(r).tolist()) for r in p]
+    shots = [Shot(t, leds, cams, exposure.bracket_ms(len(leds)), group)
+             for t in _turntables(device, turntables) for leds in rows]
+    return _plan(device, "patterns", shots, {**dict(parameters or {}), "exposure": exposure.to_dict(),
+                                             "n_patterns": int(p.shape[0])})
 
 
 def sparse_multiplexed_plan(device: Device, selection, exposure: ExposureModel | None = None, *,

@@ -13,7 +13,11 @@ and solve operators. The names (:func:`strategy_names`), the operators
   de-noising on a truncated SVD of linear RGB;
 * paper 4: sparse (pinv, Tikhonov with :math:`\\lambda\\Sigma^{-1}`),
   multiplexed and sparse + multiplexed reconstruction on the ALS basis
-  (§4.3, eq. 10; the sample counts of §5.2).
+  (§4.3, eq. 10; the sample counts of §5.2);
+* beyond the thesis (issue 20): ``n_leds // 4`` basis-aware binary patterns
+  (:mod:`btfcore.acquisition.illumination_patterns`) and as many S-matrix rows
+  chosen on the same objective, each reconstructed in one noise-whitened solve
+  of paper 4 eq. 10.
 
 Rows of a BTF are ``(turntable, camera, light)``, view-major with the light
 fastest: ``n_lv = n_turn * n_cam * n_leds`` light/view pairs.
@@ -28,6 +32,9 @@ from typing import Any
 
 import numpy as np
 
+from btfcore.acquisition.illumination_patterns import (PatternModel, design_patterns, expected_error,
+                                                      pattern_operator, random_patterns, select_rows)
+from btfcore.acquisition.noise import SensorNoise
 from btfcore.acquisition.reconstruct import LAMBDA_ALS, SolveOperator, abtf_operator, solve_operator
 from btfcore.acquisition.sampling import multiplexed_basis, parabolic_map_sampling, random_swap
 
@@ -86,10 +93,12 @@ class Strategy:
     in that order; the log Y one may be an ABTF operator) or ``'linear'``
     (one operator ``'rgb'`` on linear RGB). ``source`` is the measurement it
     reads: ``'single'`` (single-light rows), ``'truth'`` (the noise-free
-    truth), ``'demux'`` (the demultiplexed multiplexed measurement) or
-    ``'mux'`` (the multiplexed rows themselves). ``rows`` index that source
-    (None: all). An empty ``operators`` means "no reconstruction" (the plain
-    demultiplexed BTF). ``info`` is reported. ``floor`` is the kind of its
+    truth), ``'demux'`` (the demultiplexed multiplexed measurement),
+    ``'mux'`` (the multiplexed rows themselves) or ``'patterns'`` (every view
+    under the strategy's own ``patterns`` ``(m, n_leds)``, each image exposed
+    with its own gain of ``gains`` ``(n_views * m,)``, set once the images'
+    maxima are known). ``rows`` index that source (None: all). An empty
+    ``operators`` means "no reconstruction" (the plain demultiplexed BTF). ``info`` is reported. ``floor`` is the kind of its
     noise-free floor (:data:`FLOOR_COMPUTED`, :data:`FLOOR_EXACT`, :data:`FLOOR_INPUT`).
     """
 
@@ -100,6 +109,8 @@ class Strategy:
     operators: dict[str, SolveOperator]
     info: dict[str, Any] = field(default_factory=dict)
     floor: str = FLOOR_COMPUTED
+    patterns: np.ndarray | None = None
+    gains: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -137,8 +148,9 @@ class _Design:
 
     def __init__(self, bases: StrategyBases, geometry: Geometry, light_dir: np.ndarray, view_dir: np.ndarray,
                  variance: np.ndarray, patterns: np.ndarray, seed: int, abrdf_k_fraction: float,
-                 sampling_steps: int) -> None:
+                 sampling_steps: int, noise: SensorNoise | None = None) -> None:
         self.bases, self.geometry, self.variance, self.patterns = bases, geometry, variance, patterns
+        self.noise = noise or SensorNoise()
         self.light_dir, self.view_dir = light_dir, view_dir
         self.seed, self.abrdf_k_fraction, self.sampling_steps = seed, abrdf_k_fraction, sampling_steps
         self.U = {c: b.U for c, b in bases.log_yuv.items()}
@@ -203,6 +215,46 @@ class _Design:
                           max_steps=self.sampling_steps, seed=self.seed + 1)
         return _rows_of_groups(np.asarray(sel.units), g, n_p), sel, n_s
 
+    # ---- issue 20: basis-aware illumination patterns
+    @cached_property
+    def pattern_model(self) -> PatternModel:
+        als = self.bases.als
+        return PatternModel(als.U, als.sigma, self.geometry.n_leds, self.noise)
+
+    @cached_property
+    def n_patterns(self) -> int:
+        """Patterns of the designed and subsampled strategies: a quarter of the LEDs (the issue's m <= n/4)."""
+        return max(1, self.geometry.n_leds // 4)
+
+    @cached_property
+    def designed(self) -> Any:
+        """Refined by bit flips from the subsampled S-matrix rows (robust start)."""
+        return design_patterns(self.pattern_model, self.n_patterns, seed=self.seed, sweeps=1,
+                               start=self.subsampled.patterns)
+
+    @cached_property
+    def subsampled(self) -> Any:
+        return select_rows(self.pattern_model, self.patterns, self.n_patterns)[1]
+
+    def pattern_design(self, kind: str) -> Any:
+        """The ``'designed'`` or ``'subsampled'`` :class:`~btfcore.acquisition.illumination_patterns.PatternDesign`."""
+        return self.designed if kind == "designed" else self.subsampled
+
+    def patterns_report(self) -> dict[str, Any]:
+        """Predicted errors of the full S-matrix, the subsampled one, random and designed patterns, and the
+        designed and subsampled patterns as lists of the LEDs on (for the time model)."""
+        model, m = self.pattern_model, self.n_patterns
+        out: dict[str, Any] = {"m": m, "n_leds": self.geometry.n_leds, "peak_factor": model.peak_factor,
+                               "predicted_relative_error": {
+                                   "full-s-matrix": expected_error(model, self.patterns).relative_error,
+                                   "subsampled-s-matrix": self.subsampled.relative_error,
+                                   "random": expected_error(model, random_patterns(model.n_leds, m, self.seed)
+                                                            ).relative_error,
+                                   "designed": self.designed.relative_error}}
+        for name, design in (("designed", self.designed), ("subsampled", self.subsampled)):
+            out[name] = {**design.summary(), "leds": [np.flatnonzero(p).tolist() for p in design.patterns]}
+        return out
+
     def report(self) -> dict[str, Any]:
         """Sample counts, condition numbers and the selected pairs of the sparse strategies."""
         g = self.geometry
@@ -218,6 +270,7 @@ class _Design:
         out["paper4"] = {"k_als": int(self.bases.als.U.shape[1]), "n_pairs": self.n_pairs, "counts": counts,
                          "sparse_multiplexed": {"n_s": n_s, "n_meas": int(len(rows)), "kappa": sel.kappa,
                                                 "pairs": _pairs(sel, self.patterns.shape[0])}}
+        out["patterns"] = self.patterns_report()
         return out
 
 
@@ -311,6 +364,17 @@ def _sparse_multiplexed(d: _Design, _: Any) -> Built:
                                "n_meas": int(len(rows)), "condition": sm.condition}
 
 
+def _illumination_patterns(d: _Design, kind: str) -> Built:
+    design = d.pattern_design(kind)
+    op = pattern_operator(d.pattern_model, design.patterns)
+    return None, {"rgb": op}, {
+        "paper": "issue 20: Ratner & Schechner 2007; paper 4 eq. 10, noise-whitened",
+        "patterns": "basis-aware binary (S-matrix rows refined by bit flips)" if kind == "designed"
+        else "S-matrix rows chosen on the same objective", "m": design.m, "k": int(d.bases.als.U.shape[1]),
+        "n_meas": int(d.geometry.n_views * design.m), "condition": op.condition,
+        "predicted_relative_error": design.relative_error, "leds_on_mean": float(design.leds_on.mean())}
+
+
 # --------------------------------------------------------------------------- the registry
 
 
@@ -340,6 +404,8 @@ REGISTRY: tuple[StrategySpec, ...] = (
       for n in THESIS_N_S for kind, build in (("tikhonov", _sparse_tikhonov), ("pinv", _sparse_pinv))),
     StrategySpec("multiplexed-direct", "linear", "mux", _multiplexed),
     StrategySpec(f"sparse-multiplexed-n{THESIS_N_S[-1]}", "linear", "mux", _sparse_multiplexed),
+    StrategySpec("patterns-quarter", "linear", "patterns", _illumination_patterns, "designed"),
+    StrategySpec("smatrix-quarter", "linear", "patterns", _illumination_patterns, "subsampled"),
 )
 
 
@@ -355,7 +421,8 @@ def floor_kinds() -> dict[str, str]:
 
 def build_strategies(bases: StrategyBases, geometry: Geometry, light_dir: np.ndarray, view_dir: np.ndarray,
                      variance: np.ndarray, patterns: np.ndarray, seed: int, *, abrdf_k_fraction: float = 0.75,
-                     sampling_steps: int = 1500) -> tuple[list[Strategy], dict[str, Any]]:
+                     sampling_steps: int = 1500, noise: SensorNoise | None = None
+                     ) -> tuple[list[Strategy], dict[str, Any]]:
     """Samplings and solve operators of every strategy of :data:`REGISTRY` for one held-out material.
 
     Parameters
@@ -377,6 +444,8 @@ def build_strategies(bases: StrategyBases, geometry: Geometry, light_dir: np.nda
         ABRDF bases use at most this fraction of the parabolic-map sample count as vectors.
     sampling_steps : int
         Steps of every random-swap sampler.
+    noise : SensorNoise, optional
+        The sensor the basis-aware patterns are designed for (default :class:`SensorNoise` ()).
 
     Returns
     -------
@@ -385,7 +454,8 @@ def build_strategies(bases: StrategyBases, geometry: Geometry, light_dir: np.nda
         selected (turntable, LED / pattern) pairs of the sparse strategies.
     """
     design = _Design(bases, geometry, light_dir, view_dir, variance, patterns, seed, abrdf_k_fraction,
-                     sampling_steps)
-    strategies = [Strategy(spec.name, spec.space, spec.source, *spec.build(design, spec.arg), floor=spec.floor)
+                     sampling_steps, noise)
+    strategies = [Strategy(spec.name, spec.space, spec.source, *spec.build(design, spec.arg), floor=spec.floor,
+                           patterns=design.pattern_design(spec.arg).patterns if spec.source == "patterns" else None)
                   for spec in REGISTRY]
     return strategies, design.report()

@@ -1,4 +1,5 @@
-"""The thesis' claims (a)-(e) and its tables, computed from the evaluation's scores.
+"""The thesis' claims (a)-(e), issue 20's bar on basis-aware patterns (f) and the thesis' tables, computed from
+the evaluation's scores.
 
 Every verdict is computed from the numbers beside it by the rule it states,
 never written by hand (docs/evaluation.md, "Claims and measured numbers").
@@ -155,7 +156,8 @@ def predicted_times(device: Device, sampling: dict[str, Any]) -> dict[str, Any]:
     dome (12 positions, the thesis' n_s = 400 pairs drawn at random: the time
     depends on the count, not on which pairs).
     """
-    from btfcore.acquisition.plan import full_single_light_plan, multiplexed_plan, sparse_multiplexed_plan, sparse_plan
+    from btfcore.acquisition.plan import (full_single_light_plan, multiplexed_plan, patterns_plan,
+                                          sparse_multiplexed_plan, sparse_plan)
     from btfcore.acquisition.time_model import predict_time
 
     p4 = sampling["paper4"]
@@ -167,6 +169,9 @@ def predicted_times(device: Device, sampling: dict[str, Any]) -> dict[str, Any]:
         "sparse-multiplexed": predict_time(sparse_multiplexed_plan(
             device, np.asarray(p4["sparse_multiplexed"]["pairs"]))).total_s,
     }
+    designed = {name: _patterns_matrix(sampling["patterns"][kind]["leds"], device.n_leds)
+                for name, kind in PATTERN_PLANS.items() if "patterns" in sampling}
+    here.update({name: predict_time(patterns_plan(device, p)).total_s for name, p in designed.items()})
     full = get_device("bonn-dome2")
     rng = np.random.default_rng(0)
     n_p = multiplexing_patterns(full.n_leds).shape[0]
@@ -181,9 +186,22 @@ def predicted_times(device: Device, sampling: dict[str, Any]) -> dict[str, Any]:
         "multiplexed": predict_time(multiplexed_plan(full)).total_s,
         "sparse-multiplexed": predict_time(sparse_multiplexed_plan(full, draw(n_p))).total_s,
     }
+    thesis.update({name: predict_time(patterns_plan(full, p)).total_s for name, p in designed.items()
+                   if p.shape[1] == full.n_leds})
     return {"evaluated_device_s": here, "thesis_device_s": thesis,
             "exposure": "btfcore.acquisition.plan.ExposureModel() defaults: single-light bracket 10, 100, 1000 ms; a pattern "
                         "of m LEDs 1/m of it", "params": "btfcore.acquisition.time_model.TimeModelParams() defaults"}
+
+
+#: The plans of the pattern strategies (issue 20) in :func:`predicted_times`: their patterns in the sampling report.
+PATTERN_PLANS = {"patterns": "designed", "smatrix-subsampled": "subsampled"}
+
+
+def _patterns_matrix(leds: list[list[int]], n_leds: int) -> np.ndarray:
+    p = np.zeros((len(leds), n_leds), dtype=np.uint8)
+    for i, on in enumerate(leds):
+        p[i, on] = 1
+    return p
 
 
 def _verdict(ok: bool) -> str:
@@ -328,8 +346,56 @@ def _claim_e(result: dict[str, Any], st: dict[str, dict[str, tuple[float, int, i
             "tables": [{"caption": "mean log Y relative L2 error over all materials", "rows": table}]}
 
 
+def _claim_f(result: dict[str, Any], st: dict[str, dict[str, tuple[float, int, int]]],
+             times: dict[str, Any]) -> dict[str, Any]:
+    """Issue 20's bar: m <= n/4 basis-aware patterns, error no worse than the full S-matrix's at no more than
+    half its predicted time."""
+    names = {"patterns": "patterns-quarter", "smatrix-subsampled": "smatrix-quarter",
+             "multiplexed": "multiplexed-direct"}
+    t = times["evaluated_device_s"]
+    if not all(n in st["all"] for n in names.values()) or "patterns" not in t:
+        return {"claim": "issue 20: basis-aware patterns", "rule": "-", "verdict": "not tested (no pattern "
+                "strategies in these results)", "measured": "", "numbers": {}, "excluded": {}, "tables": []}
+    rec = next(iter(result["materials"].values()))
+    info = (rec.get("strategies") or {}).get("patterns-quarter") or {}
+    pred = ((rec.get("sampling") or {}).get("patterns") or {})
+    m, n = info.get("m"), pred.get("n_leds")
+    e = {k: st["all"][v][0] for k, v in names.items()}
+    ratio_t = t["patterns"] / t["multiplexed"]
+    ok = e["patterns"] <= e["multiplexed"] and ratio_t <= 0.5 and m is not None and n is not None and 4 * m <= n
+    classes = [c for c in st if c != "all"]
+    wins = sum(st[c][names["patterns"]][0] <= st[c][names["multiplexed"]][0] for c in classes)
+    labels = {"patterns": f"basis-aware patterns (m = {m})", "smatrix-subsampled": f"S-matrix rows (m = {m})",
+              "multiplexed": "full S-matrix (multiplexed-direct)"}
+    table = [["acquisition", "log Y rel. L2 [%]", "error over the full S-matrix's [1]",
+              "predicted time, evaluated device [s]", "time over the full S-matrix's [1]",
+              "predicted time, thesis device [h]"]] + [
+        [labels[k], _cell(st, "all", names[k]), round(e[k] / e["multiplexed"], 3), round(t[k], 1),
+         round(t[k] / t["multiplexed"], 3),
+         round(times["thesis_device_s"][k] / 3600, 3) if k in times["thesis_device_s"] else None] for k in labels]
+    per_class = [["class"] + [f"{names[k]} [%]" for k in labels]] + [
+        [c] + [_cell(st, c, names[k]) for k in labels] for c in classes]
+    return {"claim": f"issue 20: with m <= n/4 basis-aware binary LED patterns (m = {m} of n = {n} LEDs), the "
+                     "reconstruction error is no worse than the full S-matrix's with all its patterns, at no more "
+                     "than half its predicted acquisition time",
+            "numbers": {"rel_l2_log_y_percent": {k: round(100 * v, 3) for k, v in e.items()},
+                        "time_ratio_to_full_s_matrix": round(ratio_t, 3),
+                        "predicted_time_s_evaluated_device": {k: round(t[k], 1) for k in labels},
+                        "predicted_relative_error_noise_only": pred.get("predicted_relative_error"),
+                        "classes_where_patterns_no_worse": f"{wins}/{len(classes)}"},
+            "rule": "mean error(patterns) <= mean error(full S-matrix), predicted time <= 0.5 x, and 4 m <= n",
+            "verdict": _verdict(ok),
+            "measured": f"patterns {_pct(100 * e['patterns'])} vs full S-matrix {_pct(100 * e['multiplexed'])} "
+                        f"(S-matrix rows at the same m {_pct(100 * e['smatrix-subsampled'])}); predicted "
+                        f"{t['patterns']:,.0f} s vs {t['multiplexed']:,.0f} s ({ratio_t:.3g}x); no worse in "
+                        f"{wins} of {len(classes)} classes",
+            "excluded": _excluded({"all": st["all"]}, names.values()),
+            "tables": [{"caption": "means over all materials; times by btfcore.acquisition.time_model", "rows": table},
+                       {"caption": "class means of the log Y relative L2 error", "rows": per_class}]}
+
+
 def claims(result: dict[str, Any], times: dict[str, Any]) -> dict[str, dict[str, Any]]:
-    """The thesis' claims (a)-(e) with their numbers and a verdict computed from them.
+    """The thesis' claims (a)-(e) and issue 20's pattern bar (f) with their numbers and a verdict computed from them.
 
     Means leave diverged results out (:func:`mean_stats`); ``excluded`` says how many.
 
@@ -343,14 +409,14 @@ def claims(result: dict[str, Any], times: dict[str, Any]) -> dict[str, dict[str,
     Returns
     -------
     claims : dict
-        ``{"a" ... "e": {"claim", "numbers", "rule", "verdict", "measured", "excluded", "tables", ...}}``:
+        ``{"a" ... "f": {"claim", "numbers", "rule", "verdict", "measured", "excluded", "tables", ...}}``:
         ``claim`` what the thesis claims, ``measured`` a sentence of what was measured, ``excluded``
         ``{group: {strategy: "n of m"}}`` the diverged results left out of a mean, ``tables`` its numbers as
         ``[{"caption", "rows"}]`` (header first, units in brackets; a cell ``{"value", "flag"}`` is flagged).
     """
     st = mean_stats(result)
     return {"a": _claim_a(st), "b": _claim_b(result, st), "c": _claim_c(st), "d": _claim_d(st, times),
-            "e": _claim_e(result, st)}
+            "e": _claim_e(result, st), "f": _claim_f(result, st, times)}
 
 
 def thesis_tables(result: dict[str, Any], flagged: bool = False) -> dict[str, Any]:

@@ -2,8 +2,9 @@
 
 Per held-out material one chain of Dask tasks over bands of texture rows:
 band maxima -> exposure gains -> band moments of the demultiplexed
-measurement -> operators (leave-one-out bases, samplings; once) -> band
-reconstructions and error sums -> scores. All materials' chains are
+measurement -> operators (leave-one-out bases, samplings, designed
+patterns; once) -> band maxima of the designed patterns' images -> their
+gains -> band reconstructions and error sums -> scores. All materials' chains are
 submitted at once (one graph). The numerics are
 :mod:`btfcore.acquisition.band_evaluation` and
 :mod:`btfcore.acquisition.strategies`; this module reads and writes the
@@ -32,8 +33,10 @@ from btfcore.acquisition.band_evaluation import (
     measure_band,
     moments_variance,
     noise_free_band,
+    pattern_maxima,
     reconstruct_strategies,
     score_band,
+    with_pattern_gains,
 )
 from btfcore.acquisition.hadamard import multiplexing_patterns
 from btfcore.acquisition.noise import SensorNoise, exposure_gain
@@ -162,7 +165,7 @@ def evaluate_band(path: str, r0: int, r1: int, strategies: list[Strategy], gains
     noise_free = noise_free_band(truth_halo, halo.start, r0, r1, patterns, geometry) if floors else None
     scores, ref = {}, BandTruth.of(measured[0])
     for strategy, recon, floor in reconstruct_strategies(strategies, r0, r1, truth_halo, halo.start, geometry,
-                                                         measured, noise_free):
+                                                         measured, noise_free, noise, seed):
         for what, x in (("", recon), (" (noise-free floor)", floor)):
             if x is not None and not np.all(np.isfinite(x)):
                 bad = np.unravel_index(int(np.argmin(np.isfinite(x))), x.shape)
@@ -227,9 +230,27 @@ def _operators(model_path: str, materials: list[Material], material_id: str, set
     b = leave_one_out_bases(model_path, materials, material_id, settings)
     bases = StrategyBases({c: b[c] for c in CHANNELS}, b["abtf_log_y"], b["als"], b[LINEAR_SVD])
     group = zarr.open_group(material.path, mode="r", zarr_format=3)
+    sensor = config.build_device().sensor
     return build_strategies(bases, geometry, np.asarray(group["light_dir"][...]), np.asarray(group["view_dir"][...]),
                             variance, patterns, config.seed + _material_index(material_id) % 100000,
-                            abrdf_k_fraction=config.abrdf_k_fraction, sampling_steps=config.sampling_steps)
+                            abrdf_k_fraction=config.abrdf_k_fraction, sampling_steps=config.sampling_steps,
+                            noise=SensorNoise(float(sensor.full_well_e), float(sensor.read_noise_e), config.fill))
+
+
+def band_pattern_maxima(path: str, r0: int, r1: int, ops: tuple[list[Strategy], dict[str, Any]]
+                        ) -> dict[str, np.ndarray]:
+    """Brightest noise-free value of every image of the strategies with their own patterns within rows r0:r1."""
+    return pattern_maxima(_read_rows(path, r0, r1), ops[0])
+
+
+def _with_pattern_gains(ops: tuple[list[Strategy], dict[str, Any]], maxima: list[dict[str, np.ndarray]],
+                        noise: SensorNoise, path: str) -> tuple[list[Strategy], dict[str, Any]]:
+    """The operators with the gains of the designed patterns' images (the ideal dome's auto exposure, also
+    under a non-ideal dome: docs/evaluation.md, "Basis-aware illumination patterns (issue 20)")."""
+    try:
+        return with_pattern_gains(ops[0], maxima, noise), ops[1]
+    except ValueError as exc:
+        raise ValueError(f"{path}: btf: {exc}") from None
 
 
 def _first(pair: tuple) -> Any:
@@ -304,6 +325,7 @@ def _submit_material(client: Any, model_path: str, materials: list[Material], m:
                                                          *([dome] if dome else [])), pure=False)
     ops = client.submit(_operators, model_path, materials, m.material_id, config.model_settings(), geometry, config,
                         variance, patterns, pure=False)
+    ops = client.submit(_with_pattern_gains, ops, each_band(band_pattern_maxima, ops), noise, m.path, pure=False)
     strategies = client.submit(_first, ops, pure=False)
     info = client.submit(_strategy_info, ops, pure=False)
     scores = client.submit(_reduce_scores, each_band(evaluate_band, strategies, gains, patterns, geometry, noise,
@@ -326,6 +348,7 @@ def _finish_material(record_path: str, key: str, cls: str, scores: dict[str, Ban
               "strategies": info[0], "sampling": info[1]}
     for path in (stores or {}).values():
         zarr.open_group(path, mode="r+", zarr_format=3).attrs.update({"complete": True})
+    kill_point("chunk-written")                                  # scored, its record not yet written
     return write_record(record_path, key, record)
 
 
@@ -335,8 +358,8 @@ def evaluate_materials(model_path: str, materials: list[Material], config: Evalu
     """Every strategy on every held-out material: one Dask graph of (material, band) tasks.
 
     Per material: band maxima -> exposure gains -> band variances of the
-    demultiplexed measurement -> operators (leave-one-out bases, samplings) ->
-    band reconstructions and error sums -> scores, stored in
+    demultiplexed measurement -> operators (leave-one-out bases, samplings) -> band maxima and gains of the
+    designed patterns' images -> band reconstructions and error sums -> scores, stored in
     ``out_dir/scores/<material>.json`` under ``key`` (:func:`.reuse.scores_key`).
     Materials in ``render_ids`` also get their reconstructions written to
     ``out_dir/reconstructions/<material>/<strategy>.zarr``. A material whose

@@ -13,6 +13,7 @@ import zarr
 from btfcore.acquisition.band_evaluation import DIVERGED_MRE_PERCENT, DIVERGED_REL_L2_LOG_Y, ILL_CONDITIONED
 from btfcore.acquisition.hadamard import multiplexing_patterns
 from btfcore.acquisition.strategies import THESIS_N_S, THESIS_PAIRS, Geometry, scaled_pairs
+from tasks.adaptive import adaptive_sections
 from tasks.compute import wait_all
 from tasks.evaluate_acquisition.claims import result_flags, thesis_tables
 from tasks.evaluate_acquisition.config import EvaluationConfig
@@ -171,6 +172,12 @@ def _excluded_text(claim: dict[str, Any]) -> str:
             "them, flagged in its table.")
 
 
+def _hours(seconds: float | None) -> float | None:
+    """Seconds in hours (3 decimals); None where the thesis' device has no such plan (designed patterns of
+    another LED count)."""
+    return None if seconds is None else round(seconds / 3600, 3)
+
+
 def _claim_sections(claims: dict[str, Any]) -> list[dict[str, Any]]:
     overview = [["claim", "the thesis claims", "measured here", "rule", "verdict"]] + [
         [f"({k})", c["claim"], Cell(c.get("measured", ""), flag=_excluded_text(c) or None), c["rule"], c["verdict"]]
@@ -259,8 +266,9 @@ def write_acquisition_report(out_dir: str | os.PathLike, summary: dict[str, Any]
                   "table": tables["all_strategies"]},
                  {"title": "Predicted acquisition times (btfcore.acquisition.time_model)",
                   "table": [["strategy", "evaluated device [s]", "thesis device [h]"]] + [
-                      [k, round(v, 1), round(summary["times"]["thesis_device_s"][k] / 3600, 3)]
+                      [k, round(v, 1), _hours(summary["times"]["thesis_device_s"].get(k))]
                       for k, v in summary["times"]["evaluated_device_s"].items()]}]
+    sections += adaptive_sections(summary.get("adaptive"))
     sections += _figure_sections(summary, flags)
     head = {"scale": scale_text(summary["scale"]),
             **{f"claim ({k})": c["verdict"] for k, c in summary["claims"].items()},

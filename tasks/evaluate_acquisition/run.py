@@ -24,6 +24,7 @@ from tasks.evaluate_acquisition.graph import EVAL_BASES, _geometry, evaluate_mat
 from tasks.evaluate_acquisition.report import abrdf_images, env_map_path, renderings, scale_of
 from tasks.evaluate_acquisition.reuse import figures_key, figures_present, read_record, scores_key, write_record
 from tasks.evaluate_acquisition.truth import ensure_truth_database, pending_truth_specs
+from tasks.adaptive import evaluate_adaptive
 from tasks.model import Material, discover
 
 
@@ -103,7 +104,10 @@ def evaluate_acquisition(db: str | os.PathLike, out_dir: str | os.PathLike, clie
     geometry = _geometry(materials[0])
     first = next(iter(result["materials"].values()))
     times = predicted_times(config.build_device(), first["sampling"])
-    return {"schema": "btf-acquisition-evaluation", "config": config.to_json(),
+    t0 = time.perf_counter()
+    adaptive = evaluate_adaptive(model_path, materials, config, client, out, result, key)   # docs/adaptive-capture.md
+    seconds["adaptive"] = time.perf_counter() - t0
+    return {"schema": "btf-acquisition-evaluation", "adaptive": adaptive, "config": config.to_json(),
             "scale": scale_of(materials, geometry, config), "model": model_path,
             "materials": result["materials"], "reconstructions": result["reconstructions"],
             "class_means": {m: class_means(result, m) for m in ("rel_l2_log_y", "mrmse", "mpsnr", "mre")},

@@ -98,6 +98,9 @@ def ensure_truth_database(config: EvaluationConfig, db: str | os.PathLike, clien
                           progress: Progress | None = None) -> list[str]:
     """Write the truth stores of ``config`` into ``db`` (reusing finished ones), one Dask task per view.
 
+    An unfinished store of this configuration (a killed run's) is resumed: only its views whose
+    resume marker is not set are rendered.
+
     Raises
     ------
     ValueError
@@ -109,10 +112,15 @@ def ensure_truth_database(config: EvaluationConfig, db: str | os.PathLike, clien
     futures = []
     for spec in pending_truth_specs(config, db):
         path = db / f"{spec.material_id}.zarr"
-        create_truth_store(path, config, spec, device)
+        if (store_attrs(path) or {}).get("ingest_hash") != _truth_hash(config, spec):
+            create_truth_store(path, config, spec, device)
+        written = zarr.open_group(str(path), mode="r", zarr_format=3)["written"][...]
+        views = [(t, c) for t in range(device.n_turn) for c in range(device.n_cam) if not written[t, c]]
+        if not views:
+            continue
         prepared = client.submit(prepare_truth_material, spec, config, pure=False)
         futures += [client.submit(render_truth_view, str(path), config, prepared, t, c, pure=False)
-                    for t in range(device.n_turn) for c in range(device.n_cam)]
+                    for t, c in views]
     wait_all(futures, progress)
     paths = [str(db / f"{spec.material_id}.zarr") for spec in truth_specs(config)]
     for path in paths:

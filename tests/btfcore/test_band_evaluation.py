@@ -161,8 +161,10 @@ def test_the_floor_is_the_strategy_on_noise_free_input_and_below_the_noisy_error
         floor_name,
         measure_band,
         noise_free_band,
+        pattern_maxima,
         reconstruct_band,
         reconstruct_strategies,
+        with_pattern_gains,
     )
     from btfcore.acquisition.strategies import FLOOR_COMPUTED, floor_kinds
     from btfcore.dome import get_device
@@ -187,19 +189,21 @@ def test_the_floor_is_the_strategy_on_noise_free_input_and_below_the_noisy_error
     maxima = image_maxima(truth, patterns)
     gains = (exposure_gain(maxima[0], noise), exposure_gain(maxima[1], noise))
     strategies, _ = build_strategies(bases, g, light, view, rng.uniform(0, 1, n), patterns, 7, sampling_steps=50)
+    strategies = with_pattern_gains(strategies, [pattern_maxima(truth, strategies)], noise)
     measured = measure_band(truth, 0, 0, g.height, gains, patterns, g, noise, (0, 1))
     noise_free = noise_free_band(truth, 0, 0, g.height, patterns, g)
     row_max = truth.reshape(n, -1).max(1)
     ref = BandTruth.of(truth)
     noisy_err, floor_err = [], []
-    for s, recon, floor in reconstruct_strategies(strategies, 0, g.height, truth, 0, g, measured, noise_free):
+    for s, recon, floor in reconstruct_strategies(strategies, 0, g.height, truth, 0, g, measured, noise_free, noise,
+                                                  (0, 1)):
         if floor_kinds()[s.name] != FLOOR_COMPUTED:
             assert floor is None, s.name                       # known floors (exact, or the truth's) not computed
             continue
         # the same strategy run by hand on noise-free inputs: single-light rows = the truth, multiplexed images
         # = the truth through the patterns, demultiplexed = the truth (S-matrix demultiplexing is exact)
         by_hand = reconstruct_band(s, 0, g.height, g.height, truth, truth, measure(truth, patterns=patterns), 0, g,
-                                   truth)
+                                   truth, None, (None, None))
         np.testing.assert_allclose(floor, by_hand, rtol=1e-3, atol=1e-4 * float(truth.max()), err_msg=s.name)
         noisy_err.append(finish_scores(score_band(ref, recon), row_max)["rel_l2_log_y"])
         floor_err.append(finish_scores(score_band(ref, floor), row_max)["rel_l2_log_y"])

@@ -18,7 +18,9 @@ PRELOAD = ["kill_runner", "prefect", "distributed", "zarr", "matplotlib.pyplot",
            "flows.simulate", "flows.ingest", "flows.resample", "flows.model", "flows.acquisition",
            "flows.import_btf", "flows.superres", "tasks.simulate", "tasks.ingest", "tasks.ingest_raw",
            "tasks.resample", "tasks.model", "tasks.reconstruct", "tasks.report", "tasks.bonn.import_btf",
-           "tasks.superres"]
+           "tasks.superres", "torch", "btfcore.superres.training", "flows.superres_cli", "flows.import_cli",
+           "tasks.ingest_images", "tasks.export", "flows.evaluate_acquisition", "tasks.evaluate_acquisition",
+           "tasks.evaluate_superres"]
 
 
 def run_cli(argv: list[str], environ: dict[str, str], stdout: str, stderr: str) -> None:

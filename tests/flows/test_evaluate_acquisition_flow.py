@@ -14,7 +14,11 @@ def test_flow_writes_every_strategy_and_claim(acquisition_evaluation):
     out, summary = acquisition_evaluation          # the tiny evaluation (tests/flows/conftest.py), run once
     report = json.loads((out / "report.json").read_text())
     assert report["scale"]["light_view_pairs"] == 3 * 4 * 16
-    assert set(report["claims"]) == {"a", "b", "c", "d", "e"}
+    assert set(report["claims"]) == {"a", "b", "c", "d", "e", "f"}
+    f = report["claims"]["f"]                       # issue 20: m = n/4 basis-aware patterns vs the full S-matrix
+    err, ratio = f["numbers"]["rel_l2_log_y_percent"], f["numbers"]["time_ratio_to_full_s_matrix"]
+    assert f["verdict"] == ("met" if err["patterns"] <= err["multiplexed"] and ratio <= 0.5 else "not met")
+    assert report["times"]["evaluated_device_s"]["patterns"] > 0
     for claim in report["claims"].values():
         assert claim["numbers"]
     # the verdicts follow from the measured numbers written beside them

@@ -8,7 +8,9 @@ skipped exactly what was finished; where the stage stages replacements, an ``--o
 between the two renames of its commit, finished by the next run; and a run into a fresh output that
 completes although one Dask worker kills itself mid-chunk (``BTF_KILL_WORKER_ONCE``). Every array
 and content attribute of each output must equal the reference's. Single-file outputs are killed
-before the rename that puts the file in place (:func:`file_matrix`).
+before the rename that puts the file in place (:func:`file_matrix`). The evaluations (truth database,
+model store, scores records, models and figures), `superres train` (one model file) and `export-exr` (a
+folder of files) have their own sequences below, and two real writers of one output race at the end.
 
 The commands are real ``btf`` command lines (``flows.cli.main``) in processes forked from a fork
 server that imported the pipeline once (``kill_runner``), on the session's Prefect server and Dask
@@ -34,7 +36,8 @@ import kill_runner  # tests/flows is on sys.path (pytest's rootdir insertion), a
 from tasks.staging import staging_path
 
 #: Attributes that differ between two runs of the same command by design: times and run records.
-RUN_ATTRS = frozenset({"provenance", "created", "created_at", "seconds", "timing", "timings", "wall_seconds"})
+RUN_ATTRS = frozenset({"provenance", "created", "created_at", "seconds", "timing", "timings", "wall_seconds",
+                       "cpu_s"})  # a step's CPU seconds (btf acquire, the adaptive section)
 
 
 @dataclass
@@ -45,9 +48,21 @@ class Run:
     out: str
     err: str
     seconds: float
+    pid: int = 0
 
     def summary(self) -> dict[str, Any]:
         return json.loads(self.out)
+
+
+@dataclass
+class Started:
+    """A ``btf`` process started and not yet waited for (:meth:`Btf.start`)."""
+
+    process: Any
+    out: Path
+    err: Path
+    label: str
+    start: float
 
 
 class Btf:
@@ -61,23 +76,32 @@ class Btf:
         self.seconds: list[tuple[str, float]] = []
 
     def __call__(self, *args: Any, environ: dict[str, str] | None = None) -> Run:
+        clients = self._clients()
+        run = self.finish(self.start(*args, environ=environ))
+        self._settle(clients)
+        return run
+
+    def start(self, *args: Any, environ: dict[str, str] | None = None) -> Started:
+        """Start ``btf ARGS`` in a forked process and return at once (:meth:`finish` waits for it)."""
         self.count += 1
         out, err = self.logs / f"{self.count}.out", self.logs / f"{self.count}.err"
         argv = ["--no-progress", "--cluster", str(self.profile), *map(str, args)]
-        clients = self._clients()
-        start = time.perf_counter()
         process = self.context.Process(target=kill_runner.run_cli, args=(argv, environ or {}, str(out), str(err)))
+        start = time.perf_counter()
         process.start()
+        test = os.environ.get("PYTEST_CURRENT_TEST", "").split("::")[-1].split(" ")[0]
+        return Started(process, out, err, f"{test}: {' '.join(map(str, args[:2]))} {environ or ''}", start)
+
+    def finish(self, started: Started) -> Run:
+        """Wait for a started command (at most 300 s)."""
+        process = started.process
         process.join(300)
         if process.exitcode is None:
             process.kill()
             process.join()
-        seconds = time.perf_counter() - start
-        test = os.environ.get("PYTEST_CURRENT_TEST", "").split("::")[-1].split(" ")[0]
-        self.seconds.append((f"{test}: {' '.join(map(str, args[:2]))} {environ or ''}", seconds))
-        run = Run(process.exitcode, out.read_text(), err.read_text(), seconds)
-        self._settle(clients)
-        return run
+        seconds = time.perf_counter() - started.start
+        self.seconds.append((started.label, seconds))
+        return Run(process.exitcode, started.out.read_text(), started.err.read_text(), seconds, process.pid)
 
     def ok(self, *args: Any, environ: dict[str, str] | None = None) -> Run:
         run = self(*args, environ=environ)
@@ -154,30 +178,32 @@ def btf(runtime_session, tmp_path_factory):
 # ------------------------------------------------------------------------ comparing stores
 
 
-def assert_same_store(reference: Path, output: Path) -> None:
+def assert_same_store(reference: Path, output: Path, roots: tuple[Path, Path] | None = None) -> None:
     """Every array (dtype, shape, values) and every attribute but :data:`RUN_ATTRS` of the two Zarr
-    groups are equal, at every depth."""
+    groups are equal, at every depth; with ``roots`` (the folders of the two runs), paths below them are
+    compared relative to them (a stage that records the paths of its inputs)."""
     _same_group(zarr.open_group(str(reference), mode="r", zarr_format=3),
-                zarr.open_group(str(output), mode="r", zarr_format=3), output.name)
+                zarr.open_group(str(output), mode="r", zarr_format=3), output.name, roots or (None, None))
 
 
-def _content(attrs: Any) -> dict[str, Any]:
-    return {k: v for k, v in dict(attrs).items() if k not in RUN_ATTRS}
+def _content(attrs: Any, root: Path | None = None) -> dict[str, Any]:
+    content = {k: v for k, v in dict(attrs).items() if k not in RUN_ATTRS}
+    return content if root is None else json.loads(json.dumps(content).replace(str(root), "ROOT"))
 
 
-def _same_group(a: zarr.Group, b: zarr.Group, where: str) -> None:
-    assert _content(a.attrs) == _content(b.attrs), f"{where}: attributes differ"
+def _same_group(a: zarr.Group, b: zarr.Group, where: str, roots: tuple[Path | None, Path | None]) -> None:
+    assert _content(a.attrs, roots[0]) == _content(b.attrs, roots[1]), f"{where}: attributes differ"
     arrays_a, arrays_b = dict(a.arrays()), dict(b.arrays())
     assert sorted(arrays_a) == sorted(arrays_b), f"{where}: arrays {sorted(arrays_a)} vs {sorted(arrays_b)}"
     for name, x in arrays_a.items():
         y = arrays_b[name]
         assert (x.dtype, x.shape) == (y.dtype, y.shape), f"{where}/{name}"
-        assert _content(x.attrs) == _content(y.attrs), f"{where}/{name}: attributes differ"
+        assert _content(x.attrs, roots[0]) == _content(y.attrs, roots[1]), f"{where}/{name}: attributes differ"
         np.testing.assert_array_equal(x[...], y[...], err_msg=f"{where}/{name}")
     groups_a, groups_b = dict(a.groups()), dict(b.groups())
     assert sorted(groups_a) == sorted(groups_b), f"{where}: groups {sorted(groups_a)} vs {sorted(groups_b)}"
     for name, sub in groups_a.items():
-        _same_group(sub, groups_b[name], f"{where}/{name}")
+        _same_group(sub, groups_b[name], f"{where}/{name}", roots)
 
 
 def leftovers(output: Path) -> list[str]:
@@ -471,3 +497,243 @@ def test_sample(btf, model, tmp_path):
     file_matrix(btf, tmp_path, lambda out: ("sample", "--model", model, "--class", "leather", "--basis", "als",
                                             "--n", "24", "--out", out), files=("",),
                 name="samples.json")
+
+
+# ------------------------------------------------------------------------ the stages added since (issue 19 item 2)
+
+
+def _json(path: Path, roots: tuple[Path, ...] = (), drop: frozenset[str] = frozenset()) -> Any:
+    """A JSON file's document without its run records (:data:`RUN_ATTRS` and ``drop``, at any depth), each
+    of ``roots`` written as ``ROOT``."""
+    text = path.read_text()
+    for root in roots:
+        text = text.replace(str(root), "ROOT")
+    return _without(json.loads(text), RUN_ATTRS | drop)
+
+
+def _without(doc: Any, keys: frozenset[str]) -> Any:
+    if isinstance(doc, dict):
+        return {k: _without(v, keys) for k, v in doc.items() if k not in keys}
+    if isinstance(doc, list):
+        return [_without(v, keys) for v in doc]
+    return doc
+
+
+def chunk_files(store: Path) -> dict[str, int]:
+    """``{chunk file: mtime_ns}`` of a store's ``btf`` array (to see that a rerun left finished chunks alone)."""
+    return {str(p.relative_to(store)): p.stat().st_mtime_ns for p in (store / "btf" / "c").rglob("*") if p.is_file()}
+
+
+#: `btf evaluate acquisition` at the smallest scale its command line allows: the tiny dome, one turntable position,
+#: 6 x 6 texels, the 12 materials (2 of each class) leave-one-out, nothing rendered.
+EVAL_ACQUISITION = ("--eval-device", "tiny", "--eval-turntable", "1", "--eval-texture", "6", "--eval-render", "0")
+#: Keys of the acquisition report that record the run, not its results.
+EVAL_RUN_KEYS = frozenset({"reused", "profile"})
+
+
+def test_evaluate_acquisition(btf, tmp_path):
+    """The truth database, the bases and the scores records of `btf evaluate acquisition`, killed while its first
+    truth store is created, once it is in place, after its first truth view and after its first scored material,
+    each run resuming the last; the last run completes although a worker kills itself before a scores record, and
+    reuses exactly what was finished. Truth stores, model store, scores records and report equal an
+    uninterrupted run's."""
+    from btfcore.dome import get_device
+    from tasks.evaluate_acquisition.graph import EVAL_BASES
+
+    def args(root: Path) -> tuple[Any, ...]:
+        return ("evaluate", "acquisition", "--db", root / "db", "--out", root / "eval", *EVAL_ACQUISITION)
+
+    reference, root = tmp_path / "reference", tmp_path / "killed"
+    btf.ok(*args(reference))
+    truth = sorted(p.name for p in (reference / "db").glob("*.zarr"))
+    n_views = get_device("tiny").n_cam                                # one turntable position
+    n, n_bases = len(truth), len(EVAL_BASES) * len(truth)
+    assert n == 12 and all(markers(reference / "db" / name) == n_views for name in truth)
+    db, records = root / "db", root / "eval" / "scores"
+    btf.killed("store-creating", *args(root))
+    assert sorted(p.name for p in db.iterdir()) == [f".{truth[0]}.creating"]
+    btf.killed("store-created", *args(root))
+    assert sorted(p.name for p in db.iterdir()) == [truth[0]] and markers(db / truth[0]) == 0
+    btf.killed("chunk-done:1", *args(root))                           # one truth view awaited (and those in flight)
+    rendered = {name: markers(db / name) for name in truth}
+    assert 1 <= sum(rendered.values()) < n * n_views, rendered
+    finished = {name: chunk_files(db / name) for name in truth if rendered[name]}
+    # the views left, one fit per material, then the first scored material
+    btf.killed(f"chunk-done:{n * n_views - sum(rendered.values()) + n + 1}", *args(root))
+    for name, files in finished.items():                             # finished truth views were not rendered again
+        now = chunk_files(db / name)
+        assert {f: now[f] for f in files} == files, name
+    done = sorted(p.name for p in records.glob("*.json"))
+    assert 1 <= len(done) < n and keyed_bases(root / "eval" / "model.zarr") == n_bases, done
+    btf.with_worker_kill(tmp_path / "worker-killed.sentinel", *args(root))
+    reused = json.loads((root / "eval" / "report.json").read_text())["reused"]
+    assert {k: reused[k] for k in ("truth_stores", "bases", "material_scores")} == {
+        "truth_stores": [n, n], "bases": [n_bases, n_bases], "material_scores": [len(done), n]}, reused
+    assert not [p.name for p in db.iterdir() if not p.name.endswith(".zarr")]
+    assert (sorted(p.name for p in records.iterdir())
+            == sorted(p.name for p in (reference / "eval" / "scores").iterdir()))
+    for name in truth:
+        assert_same_store(reference / "db" / name, db / name)
+    assert_same_store(reference / "eval" / "model.zarr", root / "eval" / "model.zarr")
+    for record in (reference / "eval" / "scores").iterdir():
+        assert json.loads(record.read_text()) == json.loads((records / record.name).read_text()), record.name
+    assert (_json(root / "eval" / "report.json", (root,), EVAL_RUN_KEYS)
+            == _json(reference / "eval" / "report.json", (reference,), EVAL_RUN_KEYS))
+
+
+def _model_file(path: Path, root: Path | None = None) -> dict[str, Any]:
+    """A `btf superres train` model file without its run records: tensors as bytes, provenance without times
+    (and with the paths below ``root`` written as ``ROOT``)."""
+    import torch
+
+    payload = torch.load(path, map_location="cpu", weights_only=False)
+    state = {name: (str(t.dtype), tuple(t.shape), t.numpy().tobytes()) for name, t in payload.pop("state_dict").items()}
+    text = payload.pop("provenance")
+    provenance = _without(json.loads(text if root is None else text.replace(str(root), "ROOT")),
+                          RUN_ATTRS | {"samples_per_second"})
+    return {**payload, "state_dict": state, "provenance": provenance}
+
+
+def test_superres_train(btf, ingested, tmp_path):
+    """`btf superres train` trains in its own process (no Dask task: no worker to kill) and writes one file: killed
+    before the rename of a new model nothing is at its path, and the rerun trains the same weights (seeded,
+    deterministic algorithms, the same thread count); a finished model is reused; a replacing training killed
+    before its rename leaves the old model."""
+
+    def args(out: Path, seed: int = 0) -> tuple[Any, ...]:
+        return ("superres", "train", ingested, "--out", out, "--epochs", "1", "--fraction", "0.1", "--seed", seed)
+
+    reference, out = tmp_path / "reference" / "m.pt", tmp_path / "killed" / "m.pt"
+    for path in (reference, out):
+        path.parent.mkdir()
+    btf.ok(*args(reference))
+    btf.killed("file-replace", *args(out))
+    assert not out.exists() and (out.parent / ".m.pt.tmp").exists()
+    btf.ok(*args(out))
+    assert _model_file(out) == _model_file(reference)
+    assert sorted(p.name for p in out.parent.iterdir()) == ["m.pt"], "leftovers beside the model"
+    before = out.read_bytes()
+    assert btf.ok(*args(out)).summary()["reused"] is True and out.read_bytes() == before
+    btf.killed("file-replace", *args(out, seed=1))
+    assert out.read_bytes() == before
+
+
+def test_export_exr(btf, ingested, tmp_path):
+    """`btf export-exr` writes its files in this process, each beside its path and renamed: killed before the
+    first rename no texture is there, before the fourth the first three; the rerun writes every file again
+    (a store's textures are not keyed, so no file is taken as finished) with the reference's bytes; a rewrite
+    killed before its last rename leaves every file whole."""
+
+    def args(out: Path) -> tuple[Any, ...]:
+        return ("export-exr", ingested, "--lv", "0-5", "--out", out)
+
+    reference, out = tmp_path / "reference", tmp_path / "killed"
+    btf.ok(*args(reference))
+    expected = {p.name: p.read_bytes() for p in reference.iterdir()}
+    files = sorted(expected)
+    assert len(files) == 6 and all(name.endswith(".exr") for name in files)
+    btf.killed("file-replace", *args(out))
+    assert not list(out.glob("*.exr"))
+    btf.killed("file-replace:4", *args(out))
+    assert sorted(p.name for p in out.glob("*.exr")) == files[:3]
+    btf.ok(*args(out))
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == expected          # and no .tmp left
+    btf.killed("file-replace:6", *args(out))
+    assert {name: (out / name).read_bytes() for name in files} == expected
+
+
+def test_import_images(btf, tmp_path):
+    """`btf import-images` (PNG brackets, responses calibrated at each run): the matrix of `btf import-raw`."""
+    import sys
+
+    helpers = str(Path(__file__).resolve().parents[1] / "tasks")
+    if helpers not in sys.path:
+        sys.path.insert(0, helpers)
+    from test_import_images import write_brackets   # PNG brackets through known camera responses
+
+    folder = tmp_path / "images"
+    folder.mkdir()
+    manifest = write_brackets(folder, "png")
+    kill_matrix(btf, tmp_path, lambda out: ("import-images", folder, "--manifest", manifest, "--device", "tiny",
+                                            "--out", out), staged=False, count=views_written)
+
+
+#: `btf evaluate superres` at its smallest: one leather and one cloth, each its own test material, 8 x 8 texels,
+#: the tiny dome's cameras, one epoch.
+EVAL_SUPERRES = ("--sr-materials-per-class", "1", "--sr-texture", "8", "--sr-camera-scale", "1", "--sr-epochs", "1")
+
+
+@pytest.mark.slow  # 35-90 s (load 2-10): its smallest scale applies 3 networks to 192 regions of 72 x 72 px, twice
+def test_evaluate_superres(btf, tmp_path):
+    """`btf evaluate superres` killed while its first capture store is created, once it is in place and after its
+    first scored test material (simulate's and ingest's views before it); the rerun reuses the finished test
+    materials and completes although a worker kills itself mid-stage (before a scores record, or in `superres
+    apply`). Stores, model files, scores records, figures and report equal an uninterrupted run's."""
+    from tasks.evaluate_superres import SuperresEvaluationConfig
+
+    def args(out: Path) -> tuple[Any, ...]:
+        return ("evaluate", "superres", "--out", out, *EVAL_SUPERRES)
+
+    reference, out = tmp_path / "reference", tmp_path / "killed"
+    btf.ok(*args(reference))
+    device = SuperresEvaluationConfig(materials_per_class=1, n_train=0, n_validation=0, texture_size=8,
+                                      camera_scale=1).simulation().build_device()
+    materials = sorted(p.name for p in (reference / "db").glob("*.zarr"))
+    assert len(materials) == 2
+    btf.killed("store-creating", *args(out))
+    assert sorted(p.name for p in (out / "db").iterdir()) == [f".{materials[0]}.creating"]
+    btf.killed("store-created", *args(out))
+    assert sorted(p.name for p in (out / "db").iterdir()) == [materials[0]]
+    assert views_written(out / "db" / materials[0]) == 0
+    # every material's views simulated, then ingested, then the first test material scored
+    btf.killed(f"chunk-done:{2 * len(materials) * device.n_turn * device.n_cam + 1}", *args(out))
+    done = sorted(p.name for p in (out / "models").glob("*.scores.json"))
+    assert 1 <= len(done) <= len(materials) and not (out / "superres").exists(), done
+    btf.with_worker_kill(tmp_path / "worker-killed.sentinel", *args(out))
+    report = json.loads((out / "report.json").read_text())
+    assert sorted(f"{m['material']}.scores.json" for m in report["materials"] if m["reused"]) == done
+    for folder in ("db", "btf", "superres"):
+        for store in (reference / folder).glob("*.zarr"):
+            assert_same_store(store, out / folder / store.name, (reference, out))
+    files = sorted(p.relative_to(reference) for p in reference.rglob("*") if p.is_file() and ".zarr" not in str(p))
+    assert files == sorted(p.relative_to(out) for p in out.rglob("*") if p.is_file() and ".zarr" not in str(p))
+    run_keys = frozenset({"reused", "profile", "samples_per_second"})
+    for name in files:
+        if name.suffix == ".pt":
+            assert _model_file(out / name, out) == _model_file(reference / name, reference), name
+        elif name.suffix == ".json":
+            assert _json(out / name, (out,), run_keys) == _json(reference / name, (reference,), run_keys), name
+        elif name.suffix == ".png":
+            assert (out / name).read_bytes() == (reference / name).read_bytes(), name
+
+
+# ------------------------------------------------------------------------ two writers (issue 19 item 3)
+
+
+def test_two_real_writers_of_one_output(btf, ingested, tmp_path):
+    """Two real `btf resample` processes into one output, started at once: one writes it, the other is refused
+    naming the holder's pid and host; the output equals an uninterrupted run's and no lock is left."""
+    import socket
+
+    from tasks.locks import lock_path
+
+    source = zarr.open_group(str(ingested), mode="r", zarr_format=3)
+    sampling = tmp_path / "sampling.json"
+    sampling.write_text(json.dumps({"light_dirs": source["light_dir"][:16:4].tolist(),
+                                    "view_dirs": source["view_dir"][::16].tolist()}))
+
+    def args(out: Path) -> tuple[Any, ...]:
+        return ("resample", ingested, "--sampling", sampling, "--out", out)
+
+    reference, out = tmp_path / "reference.zarr", tmp_path / "out.zarr"
+    btf.ok(*args(reference))
+    clients = btf._clients()
+    started = [btf.start(*args(out)), btf.start(*args(out))]
+    runs = [btf.finish(s) for s in started]
+    btf._settle(clients)
+    winner, refused = sorted(runs, key=lambda run: run.code)
+    assert (winner.code, refused.code) == (0, 2), [run.err[-2000:] for run in runs]
+    assert (f"out.zarr is being written by another command ('btf resample', pid {winner.pid} on "
+            f"{socket.gethostname()}") in refused.err, refused.err[-2000:]
+    assert "Traceback" not in refused.err and not lock_path(out).exists()
+    assert_same_store(reference, out)

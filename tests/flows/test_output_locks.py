@@ -1,4 +1,8 @@
-"""Two writers of one output (issue 19): the second is refused naming the holder; a stale lock is taken over."""
+"""Two writers of one output (issue 19): the second is refused naming the holder; a stale lock is taken over.
+
+Two real `btf resample` processes racing for one output: tests/flows/test_kill_matrix.py
+(``test_two_real_writers_of_one_output``, on that module's fork server and fixtures).
+"""
 
 from __future__ import annotations
 
@@ -65,3 +69,17 @@ def test_cli_refuses_a_second_writer_without_traceback(tmp_path, capsys):
         assert f"pid {holder.pid}" in err and "Traceback" not in err
     finally:
         holder.kill()
+
+
+@pytest.mark.parametrize("what", ["acquisition", "superres", "ingest"])
+def test_evaluate_locks_report_json_only_where_it_writes_it(what, tmp_path, monkeypatch):
+    """`btf evaluate acquisition|superres` write their reports into --out: two of them started in one
+    folder must not lock each other out over ./report.json, which only `evaluate ingest` writes."""
+    from flows.cli import _io_args, build_parser
+
+    monkeypatch.chdir(tmp_path)
+    args = build_parser().parse_args(["evaluate", what, "--db", "db", "--out", "eval"])
+    outputs = _io_args(args)[0]
+    assert "report.json" not in outputs.values() and "--out" in outputs
+    given = build_parser().parse_args(["evaluate", what, "--out", "eval", "--report", "r.json"])
+    assert _io_args(given)[0]["--report"] == "r.json"          # a path given is locked like any output

@@ -38,7 +38,8 @@ def _setup(config, out, materials, material_id):
     from btfcore.acquisition.noise import SensorNoise
     from btfcore.acquisition.band_evaluation import moments_variance
     from tasks.evaluate_acquisition import band_maxima, band_variance, bands
-    from tasks.evaluate_acquisition.graph import _gains, _geometry, _operators, _reduce_max
+    from tasks.evaluate_acquisition.graph import (_gains, _geometry, _operators, _reduce_max, _with_pattern_gains,
+                                                  band_pattern_maxima)
 
     m = next(x for x in materials if x.material_id == material_id)
     geometry = _geometry(m)
@@ -49,8 +50,10 @@ def _setup(config, out, materials, material_id):
     gains = _gains(_reduce_max([band_maxima(m.path, a, b, patterns, geometry) for a, b in parts]), noise, m.path)
     variance = moments_variance([band_variance(m.path, a, b, gains, patterns, geometry, noise, seed)
                                  for a, b in parts])
-    strategies, _ = _operators(str(out / "model.zarr"), materials, material_id, config.model_settings(), geometry,
-                               config, variance, patterns)
+    ops = _operators(str(out / "model.zarr"), materials, material_id, config.model_settings(), geometry,
+                     config, variance, patterns)
+    strategies, _ = _with_pattern_gains(ops, [band_pattern_maxima(m.path, a, b, ops) for a, b in parts], noise,
+                                        m.path)
     return m, geometry, patterns, noise, seed, gains, variance, strategies
 
 
@@ -97,7 +100,8 @@ def test_chunked_reconstruction_equals_in_memory(tiny_eval, tmp_path, band_rows)
     truth = _read_rows(m.path, 0, h)
     single, mux = noisy_rows(truth, 0, gains, patterns, geometry, noise, seed)
     demux = demultiplex_views(mux, patterns, geometry)
-    whole = {s.name: reconstruct_band(s, 0, h, h, truth, single, mux, 0, geometry, demux) for s in strategies}
+    whole = {s.name: reconstruct_band(s, 0, h, h, truth, single, mux, 0, geometry, demux, None, (noise, seed))
+             for s in strategies}
     # chunked: bands with halos, written to stores and reduced scores
     write = {s.name: create_reconstruction_store(tmp_path / f"{s.name}.zarr", m.path, band_rows, s.name)
              for s in strategies}
@@ -123,7 +127,8 @@ def test_chunked_reconstruction_equals_in_memory(tiny_eval, tmp_path, band_rows)
         assert (floor in total) == (s.floor == FLOOR_COMPUTED), s.name
         if floor in total:
             noise_free = noise_free_band(truth, 0, 0, h, patterns, geometry)
-            whole_floor = reconstruct_band(s, 0, h, h, truth, *noise_free[1:3], 0, geometry, noise_free[3])
+            whole_floor = reconstruct_band(s, 0, h, h, truth, *noise_free[1:3], 0, geometry, noise_free[3], None,
+                                           (None, None))
             assert finish_scores(total[floor], row_max)["rel_l2_log_y"] == pytest.approx(
                 relative_error(truth, whole_floor.astype(np.float32), space="log_y"), rel=1e-3), s.name
 

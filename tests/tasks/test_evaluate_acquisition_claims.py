@@ -1,4 +1,4 @@
-"""The verdicts of claims (a)-(e) (tasks.evaluate_acquisition.claims): each rule flips when its input crosses
+"""The verdicts of claims (a)-(f) (tasks.evaluate_acquisition.claims): each rule flips when its input crosses
 its threshold. Small constructed score tables, no cluster."""
 
 from __future__ import annotations
@@ -14,9 +14,10 @@ BASE = {"abrdf-pmap7": 0.50, "abrdf-optimized": 0.20, "abtf-pmap7": 0.15, "abtf-
         "demultiplexed": 0.25, "projection": 0.11, "thresholded": 0.09,
         "sparse-tikhonov-n100": 0.24, "sparse-pinv-n100": 0.26, "sparse-tikhonov-n200": 0.18,
         "sparse-pinv-n200": 0.19, "sparse-tikhonov-n400": 0.16, "sparse-pinv-n400": 0.17,
-        "multiplexed-direct": 0.17, "sparse-multiplexed-n400": 0.18}
+        "multiplexed-direct": 0.17, "sparse-multiplexed-n400": 0.18,
+        "patterns-quarter": 0.165, "smatrix-quarter": 0.2}
 TIMES = {"evaluated_device_s": {"full-single": 1800.0, "sparse": 320.0, "multiplexed": 1400.0,
-                                "sparse-multiplexed": 250.0},
+                                "sparse-multiplexed": 250.0, "patterns": 460.0, "smatrix-subsampled": 350.0},
          "thesis_device_s": {"full-single": 11000.0, "sparse": 1900.0, "multiplexed": 8400.0,
                              "sparse-multiplexed": 1500.0}}
 
@@ -29,7 +30,8 @@ def _result(classes=("carpet", "stone", "leather"), **changes: dict[str, float])
         for j in range(2):
             materials[f"{2 * i + j:03d}-{cls}"] = {
                 "class": cls, "scores": {name: {"rel_l2_log_y": errors[name], "mrmse": 0.1, "mpsnr": 20.0,
-                                                "mre": 10.0} for name in strategy_names()}}
+                                                "mre": 10.0} for name in strategy_names()},
+                "strategies": {"patterns-quarter": {"m": 49}}, "sampling": {"patterns": {"n_leds": 198}}}
     return {"materials": materials}
 
 
@@ -39,7 +41,7 @@ def _everywhere(**errors: float) -> dict[str, dict[str, float]]:
 
 def test_the_base_table_meets_every_claim():
     out = claims(_result(), TIMES)
-    assert {k: c["verdict"] for k, c in out.items()} == dict.fromkeys("abcde", "met")
+    assert {k: c["verdict"] for k, c in out.items()} == dict.fromkeys("abcdef", "met")
     assert out["c"]["classes_in_order"] == "3/3"
     assert out["d"]["numbers"]["ratio_to_sparse"] == pytest.approx(0.18 / 0.16, abs=1e-3)
 
@@ -154,3 +156,14 @@ def test_means_leave_diverged_results_out_and_say_how_many():
     # every numeric column names its unit or is a count
     for rows in [t["rows"] for claim in out.values() for t in claim["tables"]] + list(tables.values()):
         assert columns_without_unit(rows) == [], rows[0]
+
+
+@pytest.mark.parametrize("error,time,verdict", [
+    (0.17, 700.0, "met"), (0.171, 700.0, "not met"), (0.165, 701.0, "not met"),
+])
+def test_claim_f_needs_patterns_no_worse_than_the_full_s_matrix_at_half_its_time(error, time, verdict):
+    """Issue 20's bar: the designed patterns' mean error <= the full S-matrix's (0.17) and time <= 0.5 x 1400 s."""
+    t = {**TIMES, "evaluated_device_s": {**TIMES["evaluated_device_s"], "patterns": time}}
+    out = claims(_result(**_everywhere(**{"patterns-quarter": error})), t)
+    assert out["f"]["verdict"] == verdict
+    assert out["f"]["numbers"]["time_ratio_to_full_s_matrix"] == pytest.approx(time / 1400.0, abs=1e-3)

@@ -34,7 +34,8 @@ def test_bands_measure_like_the_whole_texture(evaluated):
     from btfcore.acquisition.nonideal_measurement import noises_at_gains
     from tasks.evaluate_acquisition import band_maxima, bands, evaluate_band
     from tasks.evaluate_acquisition.graph import (
-        _dome_draws, _gains, _geometry, _operators, _reduce_max, texels_per_px)
+        _dome_draws, _gains, _geometry, _operators, _reduce_max, _with_pattern_gains, band_pattern_maxima,
+        texels_per_px)
     from tasks.model import discover
 
     out, runs = evaluated
@@ -52,8 +53,10 @@ def test_bands_measure_like_the_whole_texture(evaluated):
     assert np.all(per_view == per_view[:, :1])                              # one exposure per multiplexed capture
     dome = _dome_draws(config.non_ideal, geometry, patterns.shape[0], texels_per_px(config), seed, noises)
     variance = np.ones(geometry.n_lv)
-    strategies, _ = _operators(str(out / "realistic" / "model.zarr"), materials, m.material_id,
-                               config.model_settings(), geometry, config, variance, patterns)
+    ops = _operators(str(out / "realistic" / "model.zarr"), materials, m.material_id,
+                     config.model_settings(), geometry, config, variance, patterns)
+    strategies, _ = _with_pattern_gains(ops, [band_pattern_maxima(m.path, a, b, ops) for a, b in bands(12, 5)],
+                                        noise, m.path)
     totals = []
     for band_rows in (12, 5, 1):
         total: dict[str, BandScores] = {}

@@ -1,0 +1,453 @@
+"""Adaptive capture: measure one camera-parallel group at a time until the predicted error reaches a target.
+
+A **group** is one (turntable position, LED) pair shot by every camera at once (paper 4 §4.3, §5.2: the
+sparse samplings choose n_s of the 2,376 (light, turntable) pairs and always use all 11 cameras), so one
+group is one shot and ``n_cam`` rows of ``B``. The loop (:func:`run_adaptive`):
+
+1. reconstructs the coefficients of the class basis from the rows measured so far with paper 4's
+   Tikhonov solve (eq. 10 with the selection only, :math:`R = \\lambda\\Sigma^{-1}`,
+   :data:`~btfcore.acquisition.reconstruct.LAMBDA_ALS`), updated by a rank-``n_cam`` step per group;
+2. **predicts** the relative L2 error of log Y (paper 1 §4.1.1, the evaluation's headline metric) without
+   the truth (:meth:`AdaptiveState.predict`): the error covariance of the coefficients under the noise
+   model and a relative model residual estimated from this material's own residuals, and, as a
+   cross-check, the leave-one-group-out cross-validation error of the measured rows;
+3. stops when the prediction reaches the target or the shot budget is spent; otherwise
+4. **chooses** the group whose measurement most reduces the expected squared log-Y error of the
+   coefficients given the measurements so far (:meth:`AdaptiveState.gains`, exact rank-``n_cam``
+   updates of the error covariance, vectorised over all candidate groups).
+
+Model (per texel ``j``; ``x_i`` the row ``i`` of :math:`U\\Sigma`, coefficients :math:`c = \\Sigma d`):
+
+.. math:: y_{ij} = x_i d_j + r_{ij} + n_{ij},\\qquad r_{ij} \\sim \\mathcal N(0, s^2 \\hat Y_{ij}^2),\\qquad
+          n_{ij} \\sim \\mathcal N(0, v_{ij})
+
+``r`` is the part of the material the leave-one-out class basis cannot represent, taken as relative
+(the ALS basis is fitted to relative errors, paper 4 §4.2; and the metric is on log Y), ``v`` the sensor's
+photon and read noise at the exposure's gain (:func:`btfcore.acquisition.noise.noise_moments`). The
+estimate :math:`\\hat d = M^{-1} A^T W y`, :math:`M = A^T W A + \\lambda^2 I`, :math:`A = S U \\Sigma`
+(paper 4 eq. 10; row weights :math:`W` either 1, or, by default, relative to each row's measured
+brightness: :data:`WEIGHTINGS`), has the error covariance (the sandwich of that estimator under the noise)
+
+.. math:: \\mathrm{Cov}(\\hat d) = M^{-1} A^T W N W A M^{-1}, \\qquad N = \\mathrm{diag}(s^2\\beta_m^2 + \\bar v_m)
+
+with :math:`\\beta_m` the RMS reconstructed luminance of row ``m`` (and a texel's own brightness as a
+factor), and the bias :math:`-\\lambda^2 M^{-1}\\hat d` of the regulariser. The predicted squared log
+error of an unmeasured row is :math:`s^2 + x_i \\mathrm{Cov}\\, x_i^T / \\hat Y_{ij}^2` (first order:
+:math:`\\delta \\log Y = \\delta Y / Y`); a measured row contributes its observed log residual.
+
+Pure numerics: the measurements come from a callback (the simulator or a real dome, in ``tasks``); the
+truth is never seen here except through an optional callback that scores a reconstruction.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from btfcore.acquisition.noise import SensorNoise, exposure_gain
+from btfcore.acquisition.reconstruct import LAMBDA_ALS
+from btfcore.acquisition.strategies import Geometry, _groups
+from btfcore.model.colour import LOG_YUV_EPS, REC709_LUMA
+
+__all__ = ["PREDICTORS", "WEIGHTINGS", "AdaptiveResult", "AdaptiveState", "Step", "group_pairs", "group_rows",
+           "log_y_error", "run_adaptive", "start_groups"]
+
+#: The error predictors every step records; the first stops the loop (docs/adaptive-capture.md).
+PREDICTORS: tuple[str, ...] = ("posterior", "cv")
+#: Row weightings of the solve: paper 4's eq. 10 as is, or rows relative to their brightness.
+WEIGHTINGS: tuple[str, ...] = ("none", "relative")
+#: 'relative' weighting: rows darker than this fraction of the first group's brightness weigh as that.
+WEIGHT_FLOOR = 0.1
+#: Entries whose relative sensor noise exceeds this do not enter the estimate of the model residual.
+NOISE_MASK = 0.1
+#: Texels the predictor and the selection average over (a seeded subset; the reconstruction uses all),
+#: at most PREDICT_ENTRIES / n_lv (the thesis' 26,136 rows: 88 texels, 2.3 million entries).
+PREDICT_TEXELS = 512
+PREDICT_ENTRIES = 2_300_000
+
+
+def log_y_error(recon_y: np.ndarray, truth_y: np.ndarray, eps: float = LOG_YUV_EPS) -> float:
+    """Relative L2 error of log Y (paper 1 §4.1.1): :math:`\\|\\log \\hat Y - \\log Y\\| / \\|\\log Y\\|`.
+
+    Parameters
+    ----------
+    recon_y, truth_y : (n_lv, n_tx) ndarray
+        Luminance of the reconstruction and of the truth (floored at ``eps`` before the log).
+    """
+    a = np.log(np.maximum(recon_y, eps))
+    b = np.log(np.maximum(truth_y, eps))
+    return float(np.linalg.norm(a - b) / np.linalg.norm(b))
+
+
+def group_rows(groups: np.ndarray, geometry: Geometry) -> np.ndarray:
+    """Rows ``(n, n_cam)`` of groups ``turntable * n_leds + led``, cameras in order (all cameras of a shot)."""
+    t, led = np.divmod(np.asarray(groups, dtype=np.int64), geometry.n_leds)
+    return (t[:, None] * geometry.n_cam + np.arange(geometry.n_cam)[None]) * geometry.n_leds + led[:, None]
+
+
+def group_pairs(groups: np.ndarray, n_leds: int) -> np.ndarray:
+    """``(n, 2)`` (turntable, LED) of group ids ``turntable * n_leds + led``."""
+    return np.stack(np.divmod(np.asarray(groups, dtype=np.int64), n_leds), axis=1)
+
+
+@dataclass
+class Step:
+    """One step of the loop: the group shot, the error predicted after it, the true error if scored."""
+
+    step: int
+    group: int
+    turntable: int
+    led: int
+    rows: list[int]
+    n_shots: int
+    predicted: float
+    predicted_cv: float
+    true: float | None
+    residual_s: float
+    cpu_s: float
+
+    def to_dict(self) -> dict[str, Any]:
+        return dict(self.__dict__)
+
+
+@dataclass
+class AdaptiveResult:
+    """What :func:`run_adaptive` returns: the steps, why it stopped, the final coefficients."""
+
+    steps: list[Step]
+    stopped: str
+    groups: np.ndarray
+    rows: np.ndarray
+    coefficients: np.ndarray            # (k, n_tx, 3) basis coefficients C = Sigma D of linear RGB
+    settings: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"stopped": self.stopped, "n_shots": int(len(self.groups)), "groups": self.groups.tolist(),
+                "settings": self.settings, "steps": [s.to_dict() for s in self.steps]}
+
+
+class AdaptiveState:
+    """The posterior of one material's basis coefficients given the groups measured so far.
+
+    Parameters
+    ----------
+    U : (n_lv, k) ndarray
+        Class basis (the ALS basis of linear RGB, paper 4), rows ``(turntable, camera, light)``.
+    sigma : (k,) ndarray
+        Its singular values (the regulariser :math:`\\lambda\\Sigma^{-1}`).
+    geometry : Geometry
+        Layout of the rows (groups are (turntable, LED) pairs with all cameras).
+    noise : SensorNoise
+        The sensor model (photon and read noise at the image's gain).
+    lam : float
+        :math:`\\lambda` (paper 4: :data:`LAMBDA_ALS`).
+    n_tx : int
+        Texels of a measured row.
+    seed : int
+        Seed of the texel subset the predictor averages over.
+    """
+
+    def __init__(self, U: np.ndarray, sigma: np.ndarray, geometry: Geometry, noise: SensorNoise, *,
+                 lam: float = LAMBDA_ALS, n_tx: int, seed: int = 0, weighting: str = "none") -> None:
+        if weighting not in WEIGHTINGS:
+            raise ValueError(f"weighting {weighting!r} is unknown; choose one of {', '.join(WEIGHTINGS)}")
+        self.weighting = weighting
+        self.X = np.asarray(U, dtype=np.float64) * np.asarray(sigma, dtype=np.float64)[None, :]   # U Sigma
+        self.sigma = np.asarray(sigma, dtype=np.float64)
+        self.geometry, self.noise, self.lam = geometry, noise, float(lam)
+        self.n_lv, self.k = self.X.shape
+        if self.n_lv != geometry.n_lv:
+            raise ValueError(f"the basis has {self.n_lv} rows, the geometry {geometry.n_lv} light/view pairs")
+        self.n_tx = int(n_tx)
+        self.group_of_row = _groups(geometry, geometry.n_leds)
+        self.n_groups = geometry.n_turn * geometry.n_leds
+        self.M = self.lam ** 2 * np.eye(self.k)                      # A^T A + lam^2 I (paper 4 eq. 10, D-space)
+        self.b = np.zeros((self.k, self.n_tx * 3))                    # A^T y, linear RGB
+        self.groups: list[int] = []
+        self.rows = np.zeros(0, dtype=np.int64)
+        rng = np.random.default_rng(seed)
+        n_sub = min(self.n_tx, PREDICT_TEXELS, max(64, PREDICT_ENTRIES // self.n_lv))
+        self.sub = np.sort(rng.choice(self.n_tx, n_sub, replace=False))
+        self.y = np.zeros((0, n_sub, 3))                              # measured rows on the texel subset
+        self.gain = np.zeros(0)                                       # electrons per unit radiance of each image
+        self.w = np.zeros(0)                                          # weight of each measured row in the solve
+        self.beta_ref = 0.0                                           # the first group's RMS luminance
+
+    # ------------------------------------------------------------------ update
+
+    def rows_of(self, group: int) -> np.ndarray:
+        """Rows ``(n_cam,)`` of one group (all cameras, in camera order)."""
+        return group_rows(np.array([group]), self.geometry)[0]
+
+    def add(self, group: int, measured: np.ndarray, gain: np.ndarray) -> None:
+        """Add one group's measurement: a rank-``n_cam`` update of :math:`M` and :math:`A^T y`.
+
+        Parameters
+        ----------
+        group : int
+            ``turntable * n_leds + led``.
+        measured : (n_cam, n_tx, 3) ndarray
+            The group's rows (cameras in order), linear RGB.
+        gain : (n_cam,) ndarray
+            Electrons per unit radiance of each image (its exposure).
+        """
+        if group in self.groups:
+            raise ValueError(f"group {group} is already measured")
+        rows = self.rows_of(group)
+        y = np.asarray(measured, dtype=np.float64).reshape(len(rows), self.n_tx, 3)
+        w = self._weights(np.sqrt(np.mean((y @ REC709_LUMA) ** 2, axis=1)))
+        a = self.X[rows] * np.sqrt(w)[:, None]                        # (n_cam, k) weighted rows
+        self.M += a.T @ a                                             # rank-n_cam update
+        self.b += a.T @ (np.sqrt(w)[:, None] * y.reshape(len(rows), -1))
+        self.w = np.concatenate([self.w, w])
+        self.groups.append(int(group))
+        self.rows = np.concatenate([self.rows, rows])
+        self.y = np.concatenate([self.y, y[:, self.sub]])
+        self.gain = np.concatenate([self.gain, np.asarray(gain, dtype=np.float64)])
+
+    def _weights(self, beta: np.ndarray) -> np.ndarray:
+        """Row weights of the solve: 1 (paper 4 eq. 10), or ``(beta_ref / beta)^2`` ('relative': each row's
+        residual counted relative to its brightness, as the log-Y metric and the ALS fit count it)."""
+        if self.weighting == "none":
+            return np.ones_like(beta)
+        if self.beta_ref == 0.0:
+            self.beta_ref = float(np.sqrt(np.mean(beta ** 2))) or 1.0
+        return (self.beta_ref / np.maximum(beta, WEIGHT_FLOOR * self.beta_ref)) ** 2
+
+    @property
+    def D(self) -> np.ndarray:
+        """Coefficients :math:`D = M^{-1} A^T y` ``(k, n_tx * 3)`` in the scaled space (:math:`C = \\Sigma D`)."""
+        return np.linalg.solve(self.M, self.b)                        # eq. (10) of paper 4
+
+    def coefficients(self) -> np.ndarray:
+        """Basis coefficients :math:`C = \\Sigma D` ``(k, n_tx, 3)`` of linear RGB: :math:`\\hat B = U C`."""
+        return (self.sigma[:, None] * self.D).reshape(self.k, self.n_tx, 3)
+
+    # ------------------------------------------------------------------ prediction
+
+    def _model(self) -> dict[str, np.ndarray | float]:
+        """The pieces the predictor and the selection share, on the texel subset."""
+        Minv = np.linalg.inv(self.M)
+        by = self.b.reshape(self.k, self.n_tx, 3)[:, self.sub] @ REC709_LUMA    # A^T W y of the subset's luminance
+        Dy = np.linalg.solve(self.M, by)                              # (k, n_sub) luminance coefficients
+        Yhat = self.X @ Dy                                            # (n_lv, n_sub) reconstructed Y
+        A = self.X[self.rows] * np.sqrt(self.w)[:, None]              # weighted rows
+        ys = self.y @ REC709_LUMA                        # (n_meas, n_sub) measured Y
+        H = np.sum((A @ Minv) * A, axis=1)                            # leverages (hat diagonal)
+        eps = LOG_YUV_EPS
+        e = np.log(np.maximum(ys, eps)) - np.log(np.maximum(Yhat[self.rows], eps))      # log residual
+        # sensor noise of the measured luminance at each image's gain: Y / g + sigma_r^2 / g^2
+        v = np.maximum(ys, 0) / self.gain[:, None] + self.noise.read_noise_e ** 2 / self.gain[:, None] ** 2
+        # the model residual from the well-exposed entries only (relative sensor noise below NOISE_MASK):
+        # in dark entries the log residual is the sensor's noise, which the reconstruction averages out
+        rel_noise = v / np.maximum(ys, eps) ** 2
+        good = rel_noise < NOISE_MASK ** 2
+        dof = max(float(np.sum((1.0 - H)[:, None] * good)), 1.0)
+        s2 = max(float(np.sum((e ** 2 - rel_noise) * good)) / dof, 0.0)     # relative model residual
+        beta2 = np.mean(Yhat ** 2, axis=1)                            # (n_lv,) row brightness^2
+        # predicted noise of an unmeasured image at an ideal auto exposure (its brightest value at fill)
+        g_all = exposure_gain(np.maximum(np.max(np.abs(Yhat), axis=1), eps), self.noise)
+        v_all = np.mean(np.maximum(Yhat, 0), axis=1) / g_all + self.noise.read_noise_e ** 2 / g_all ** 2
+        v_all[self.rows] = np.mean(v, axis=1)
+        N = s2 * beta2 + v_all                                        # (n_lv,) per-row error variance
+        w_all = self._weights(np.sqrt(beta2)) if self.beta_ref else np.ones(self.n_lv)
+        w_all[self.rows] = self.w
+        inv2 = 1.0 / np.maximum(np.abs(Yhat), eps) ** 2                  # (n_lv, n_sub) 1 / Yhat^2
+        tex = np.mean(Yhat ** 2, axis=0) / max(float(np.mean(beta2)), 1e-300)      # (n_sub,) texel brightness^2
+        return {"Minv": Minv, "Dy": Dy, "Yhat": Yhat, "e": e, "H": H, "s2": s2, "N": N, "beta2": beta2,
+                "w": w_all, "inv2": inv2, "tex": tex}
+
+    def predict(self, model: dict | None = None) -> dict[str, float]:
+        """Predicted relative L2 error of log Y over all rows, without the truth.
+
+        Returns
+        -------
+        pred : dict
+            ``posterior``: measured rows by their log residual, unmeasured rows by
+            :math:`s^2 + x_i \\mathrm{Cov}\\, x_i^T / \\hat Y_{ij}^2` plus the regulariser's bias;
+            ``cv``: unmeasured rows by the mean leave-one-group-out log error of the measured groups;
+            ``s``: the estimated relative model residual :math:`s`.
+        """
+        m = model or self._model()
+        Minv, Yhat, e, N = m["Minv"], m["Yhat"], m["e"], m["N"]
+        A = self.X[self.rows] * np.sqrt(self.w)[:, None]
+        Cov = Minv @ (A.T * (self.w * N[self.rows])) @ A @ Minv       # sandwich: M^-1 A^T W N W A M^-1
+        q = np.sum((self.X @ Cov) * self.X, axis=1)                   # (n_lv,) x_i Cov x_i^T
+        bias = self.X @ (-self.lam ** 2 * Minv @ m["Dy"])             # (n_lv, n_sub) x_i (-lam^2 M^-1 D)
+        tex, inv2 = m["tex"], m["inv2"]
+        unmeasured = np.ones(self.n_lv, dtype=bool)
+        unmeasured[self.rows] = False
+        var_u = m["s2"] + (q[unmeasured, None] * tex[None, :] + bias[unmeasured] ** 2) * inv2[unmeasured]
+        var_u = np.minimum(var_u, np.log(1 / LOG_YUV_EPS) ** 2)       # a log error is at most the log range
+        ss = float(np.sum(np.log(np.maximum(Yhat, LOG_YUV_EPS)) ** 2))
+        measured = float(np.sum(m["s2"] * (1.0 - m["H"]))) * len(self.sub)   # measured rows: s^2 (1 - h_mm)
+        post = np.sqrt((measured + float(np.sum(var_u))) / ss)
+        cv = np.sqrt((measured + self._cv_row_mse(m) * unmeasured.sum() * len(self.sub)) / ss)
+        return {"posterior": float(post), "cv": float(cv), "s": float(np.sqrt(m["s2"]))}
+
+    def _cv_row_mse(self, m: dict) -> float:
+        """Mean squared log-Y error of the measured groups, each predicted from the others (exact for the
+        linear solve: :math:`e^{(-G)} = (I - H_{GG})^{-1} e_G`)."""
+        Minv, Yhat = m["Minv"], m["Yhat"]
+        n_cam = self.geometry.n_cam
+        ys = self.y @ REC709_LUMA
+        res = ys - Yhat[self.rows]
+        total = 0.0
+        for i in range(len(self.groups)):
+            sl = slice(i * n_cam, (i + 1) * n_cam)
+            sw = np.sqrt(self.w[sl])
+            a = self.X[self.rows[sl]] * sw[:, None]
+            H = a @ Minv @ a.T
+            loo = np.linalg.solve(np.eye(n_cam) - H, sw[:, None] * res[sl]) / sw[:, None]   # y - yhat^(-G)
+            pred = ys[sl] - loo
+            d = np.log(np.maximum(pred, LOG_YUV_EPS)) - np.log(np.maximum(ys[sl], LOG_YUV_EPS))
+            total += float(np.sum(d ** 2))
+        return total / max(len(self.rows) * len(self.sub), 1)
+
+    # ------------------------------------------------------------------ selection
+
+    def gains(self, model: dict | None = None) -> np.ndarray:
+        """Expected reduction of the coefficients' squared log-Y error by measuring each group.
+
+        With :math:`J = \\mathrm{tr}(G\\, M^{-1} Q M^{-1})`, :math:`Q = A^T N A`, :math:`G = X^T W X`
+        (:math:`W` the rows' weights :math:`\\overline{t^2/\\hat Y^2}` of the log metric), adding a group
+        ``a`` (``n_cam x k``) with noise :math:`N_g` gives (Woodbury, :math:`B = a M^{-1}`,
+        :math:`T = I + B a^T`, :math:`P_1 = B G M^{-1} Q B^T`, :math:`P_2 = B Q B^T`, :math:`P_3 = B G B^T`)
+
+        .. math:: J - J' = 2\\,\\mathrm{tr}(T^{-1} P_1) - \\mathrm{tr}(T^{-1} P_2 T^{-1} P_3)
+                  - \\mathrm{tr}(T^{-1} N_g T^{-1} P_3).
+
+        Returns
+        -------
+        gain : (n_groups,) ndarray
+            ``-inf`` for groups already measured.
+        """
+        m = model or self._model()
+        Minv, N, Yhat = m["Minv"], m["N"], m["Yhat"]
+        w = m["inv2"] @ m["tex"] / len(self.sub)                      # (n_lv,) mean of t_j^2 / Yhat_ij^2
+        A = self.X[self.rows] * np.sqrt(self.w)[:, None]
+        Q = (A.T * (self.w * N[self.rows])) @ A
+        G = (self.X.T * w) @ self.X
+        return self._gains(Minv, Q, G, N, m["w"])
+
+    def _gains(self, Minv: np.ndarray, Q: np.ndarray, G: np.ndarray, N: np.ndarray,
+               w: np.ndarray | None = None) -> np.ndarray:
+        cand = np.setdiff1d(np.arange(self.n_groups), np.asarray(self.groups, dtype=np.int64))
+        rows = group_rows(cand, self.geometry)                        # (n_cand, n_cam)
+        XB = self.X @ Minv                                            # rows of B = a M^-1 of every candidate
+        sw = np.ones(rows.shape) if w is None else np.sqrt(w[rows])   # (n_cand, n_cam) weights of the solve
+        B = XB[rows] * sw[..., None]                                  # (n_cand, n_cam, k)
+        a = self.X[rows] * sw[..., None]
+        T = np.eye(self.geometry.n_cam)[None] + B @ a.transpose(0, 2, 1)
+        P1 = (B @ (G @ Minv @ Q)) @ B.transpose(0, 2, 1)
+        P2 = (B @ Q) @ B.transpose(0, 2, 1)
+        P3 = (B @ G) @ B.transpose(0, 2, 1)
+        Ti = np.linalg.inv(T)
+        TiP3 = Ti @ P3
+        Ng = N[rows] * sw ** 2                                        # (n_cand, n_cam): W N of the new rows
+        gain = (2 * np.einsum("nii->n", Ti @ P1) - np.einsum("nij,nji->n", Ti @ P2, TiP3)
+                - np.einsum("nij,nji->n", Ti * Ng[:, None, :], TiP3))
+        out = np.full(self.n_groups, -np.inf)
+        out[cand] = gain
+        return out
+
+
+def start_groups(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, n: int, lam: float = LAMBDA_ALS
+                 ) -> list[int]:
+    """The first ``n`` groups, before any data: greedy A-optimal design on :math:`U\\Sigma` (homoscedastic
+    noise, every row weighted alike), by the same rank-``n_cam`` update as :meth:`AdaptiveState.gains`."""
+    st = AdaptiveState(U, sigma, geometry, SensorNoise(), lam=lam, n_tx=1)
+    G = st.X.T @ st.X
+    chosen: list[int] = []
+    for _ in range(n):
+        # before data the error covariance is M^-1 (unit noise): J = tr(G M^-1 M M^-1), i.e. Q = M, N = 1
+        st.groups = chosen
+        A = st.X[group_rows(np.asarray(chosen, dtype=np.int64), geometry).ravel()]
+        M = A.T @ A + lam ** 2 * np.eye(st.k)
+        chosen = chosen + [int(np.argmax(st._gains(np.linalg.inv(M), M, G, np.ones(st.n_lv))))]
+    return chosen
+
+
+def run_adaptive(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, noise: SensorNoise,
+                 measure: Callable[[int, np.ndarray], tuple[np.ndarray, np.ndarray]], *, n_tx: int,
+                 target: float, budget: int, lam: float = LAMBDA_ALS, n_start: int | None = None,
+                 predictor: str = "posterior", seed: int = 0, weighting: str = "relative",
+                 score: Callable[[np.ndarray], float] | None = None,
+                 on_step: Callable[[Step, np.ndarray], None] | None = None) -> AdaptiveResult:
+    """The closed loop: choose a group, measure it, update, predict, until target or budget.
+
+    Parameters
+    ----------
+    U, sigma : (n_lv, k), (k,) ndarray
+        Class basis and its singular values.
+    geometry : Geometry
+    noise : SensorNoise
+    measure : callable
+        ``measure(group, rows) -> (measured (n_cam, n_tx, 3), gain (n_cam,))``: executes the shot of one
+        group (the simulator, or a real dome through a plan file) and returns its rows and exposures.
+    n_tx : int
+        Texels per row.
+    target : float
+        Stop when the predicted relative L2 error of log Y is at most this (a fraction).
+    budget : int
+        Most shots (groups).
+    lam : float
+        :math:`\\lambda` of the Tikhonov prior.
+    n_start : int, optional
+        Groups chosen before any data (:func:`start_groups`); default :math:`\\lceil 2k / n_{cam}\\rceil`.
+    predictor : {'posterior', 'cv'}
+        Which prediction the target is tested on (both are recorded).
+    seed : int
+        Seed of the predictor's texel subset.
+    score : callable, optional
+        ``score(C) -> true error`` of the coefficients ``C`` (k, n_tx, 3); simulated data only.
+    on_step : callable, optional
+        ``on_step(step, coefficients)`` after every step (plans, reports).
+
+    Returns
+    -------
+    result : AdaptiveResult
+    """
+    if predictor not in PREDICTORS:
+        raise ValueError(f"predictor {predictor!r} is unknown; choose one of {', '.join(PREDICTORS)}")
+    state = AdaptiveState(U, sigma, geometry, noise, lam=lam, n_tx=n_tx, seed=seed, weighting=weighting)
+    budget = int(min(budget, state.n_groups))
+    if budget < 1:
+        raise ValueError(f"the shot budget must be >= 1, got {budget}")
+    n0 = min(budget, n_start if n_start is not None else int(np.ceil(2 * state.k / geometry.n_cam)))
+    first = start_groups(U, sigma, geometry, n0, lam)
+    steps: list[Step] = []
+    stopped = "budget"
+    model = None
+    while len(state.groups) < budget:
+        t0 = time.process_time()
+        if len(state.groups) < n0:
+            group = first[len(state.groups)]
+        else:
+            group = int(np.argmax(state.gains(model)))
+        rows = state.rows_of(group)
+        t_choose = time.process_time() - t0
+        y, gain = measure(group, rows)
+        t0 = time.process_time()
+        state.add(group, y, gain)
+        model = state._model()
+        pred = state.predict(model)
+        cpu = t_choose + time.process_time() - t0
+        C = state.coefficients()
+        t, led = divmod(group, geometry.n_leds)
+        step = Step(len(steps), group, int(t), int(led), rows.tolist(), len(state.groups), pred["posterior"],
+                    pred["cv"], None if score is None else float(score(C)), pred["s"], cpu)
+        steps.append(step)
+        if on_step is not None:
+            on_step(step, C)
+        if len(state.groups) >= n0 and pred[predictor] <= target:
+            stopped = "target"
+            break
+    return AdaptiveResult(steps, stopped, np.asarray(state.groups, dtype=np.int64), state.rows.copy(),
+                          state.coefficients(), {"target": target, "budget": budget, "lam": lam, "n_start": n0,
+                                                 "predictor": predictor, "weighting": weighting, "k": state.k,
+                                                 "n_cam": geometry.n_cam})

@@ -1,0 +1,80 @@
+"""``btf acquire --adaptive``: adaptive capture that stops at a quality target (docs/adaptive-capture.md).
+
+Wiring only: the arguments and the run of the command (an entry of :data:`flows.cli.COMMANDS`); the loop
+is :func:`tasks.adaptive.acquire_adaptive` over :mod:`btfcore.acquisition.adaptive`. It works on one
+material's arrays in memory (a basis, the measured rows), so it runs in the calling process and starts
+neither a Dask cluster nor Prefect. Errors and exit codes are those of :mod:`flows.cli`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from typing import Any
+
+ACQUIRE_HELP = """\
+Adaptive capture (--adaptive): a closed loop of plan -> capture -> reconstruct ->
+choose the next camera-parallel (turntable, LED) group, until the predicted
+relative L2 error of log Y reaches --target-error or --budget shots are spent.
+The error is predicted without the truth, from the posterior of the class ALS
+basis' coefficients (paper 4 eq. 10, Tikhonov lambda Sigma^-1) under the
+sensor's noise and a model residual estimated from the material's own rows;
+the next group is the one whose shot most reduces it given the measurements so
+far. The simulator executes every shot on --truth (a noise-free BTF store, e.g.
+of `btf evaluate acquisition`'s truth database) and scores each step against
+it; every step's shot is also written as a plan (OUT/plans/step_NNN.json) that
+a dome could execute, and OUT/plan.json holds all shots in acquisition order
+with the predicted time. OUT/report.json records every step (rows, predicted
+and true error); OUT/report.html plots error against shots beside the thesis'
+fixed random-swap samplings (n_s = 100/200/400 scaled) and the 7x7 parabolic map.
+"""
+
+
+def add_acquire_arguments(p: argparse.ArgumentParser) -> None:
+    """The options of ``btf acquire``."""
+    from btfcore.dome import DEVICE_NAMES
+
+    p.add_argument("--adaptive", action="store_true", help="adaptive capture (the only mode so far)")
+    p.add_argument("--target-error", type=float, required=True, metavar="E",
+                   help="stop when the predicted relative L2 error of log Y is at most E (a fraction: 0.2 = 20 %%)")
+    p.add_argument("--budget", type=int, default=None, metavar="SHOTS",
+                   help="most shots ((turntable, LED) groups) [default: all groups]")
+    p.add_argument("--truth", required=True, metavar="TRUTH_BTF",
+                   help="noise-free BTF store the simulator measures (rows (turntable, camera, LED))")
+    p.add_argument("--model", required=True, metavar="MODEL_DIR", help="output folder of `btf build-db`")
+    p.add_argument("--class", dest="cls", required=True, metavar="CLS", help="material class of the ALS basis")
+    p.add_argument("--device", default=None, choices=DEVICE_NAMES,
+                   help="dome of the plans [default: the one the truth store records]")
+    p.add_argument("--predictor", default="posterior", choices=("posterior", "cv"),
+                   help="which prediction the target is tested on (both are recorded) [default: posterior]")
+    p.add_argument("--weighting", default="relative", choices=("relative", "none"),
+                   help="row weights of the solve: relative to each row's brightness, or none (paper 4 eq. 10 as "
+                        "is) [default: relative]")
+    p.add_argument("--no-compare", action="store_true", help="skip the fixed samplings of the report")
+    p.add_argument("--seed", type=int, default=0, help="seed of the simulated noise [default: 0]")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder (report, plans)")
+
+
+def run_acquire(args: argparse.Namespace) -> int:
+    """``btf acquire``: run the loop, write the report and plans, print the summary; the exit code."""
+    from tasks.adaptive import acquire_adaptive
+
+    if not args.adaptive:
+        raise ValueError("btf acquire needs --adaptive (the only acquisition mode so far; fixed samplings are "
+                         "`btf sample` + `btf plan`)")
+    if args.budget is not None and args.budget < 1:
+        raise ValueError(f"--budget must be >= 1 shot, got {args.budget}")
+    doc = acquire_adaptive(args.truth, args.model, args.cls, args.out, target=args.target_error,
+                           budget=args.budget, device_name=args.device, seed=args.seed, compare=not args.no_compare,
+                           predictor=args.predictor, weighting=args.weighting)
+    rec = doc["record"]
+    last = rec["steps"][-1]
+    summary: dict[str, Any] = {
+        "command": "acquire", "out": args.out, "stopped": rec["stopped"], "shots": rec["n_shots"],
+        "target_error": args.target_error, "predicted_error": last["predicted"],
+        "predicted_error_cv": last["predicted_cv"],
+        "true_error": last["true"], "predicted_time_s": doc["predicted_time_s"],
+        "fixed": {f["name"]: {"shots": f["n_shots"], "error": f["error"]} for f in rec.get("fixed", [])},
+        "report_html": doc["report_html"], "report_json": doc["report_json"]}
+    print(json.dumps(summary, indent=2))
+    return 0

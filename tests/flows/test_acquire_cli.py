@@ -1,0 +1,53 @@
+"""`btf acquire --adaptive` end to end through the real command line, on the tiny dome's truth database."""
+
+from __future__ import annotations
+
+import json
+
+from tasks.plan import read_plan
+
+
+def test_acquire_adaptive_tiny(acquisition_evaluation, model_report, run_btf, tmp_path):
+    db = acquisition_evaluation[0].parent / "acquisition-database"
+    truth = sorted(db.glob("*-carpet.zarr"))[0]
+    out = tmp_path / "acq"
+    code, stdout, err = run_btf("acquire", "--adaptive", "--target-error", "0.05", "--budget", "8",
+                                "--truth", truth, "--model", model_report, "--class", "carpet", "--out", out)
+    assert code == 0, err
+    summary = json.loads(stdout)
+    doc = json.loads((out / "report.json").read_text())
+    steps = doc["record"]["steps"]
+    assert summary["shots"] == len(steps) == doc["record"]["n_shots"] <= 8
+    assert summary["stopped"] in ("target", "budget")
+    if summary["stopped"] == "budget":
+        assert len(steps) == 8
+    else:
+        assert steps[-1]["predicted"] <= 0.05
+    for s in steps:                                          # every step recorded: rows, predicted and true error
+        assert len(s["rows"]) == 4 and s["predicted"] > 0 and s["true"] > 0
+    groups = [s["group"] for s in steps]
+    assert len(set(groups)) == len(groups)
+    plans = sorted((out / "plans").glob("step_*.json"))
+    assert len(plans) == len(steps)                           # one plan file per step, one shot each
+    first = json.loads(plans[0].read_text())
+    assert len(first["shots"]) == 1 and first["shots"][0]["leds"] == [steps[0]["led"]]
+    assert len(first["shots"][0]["cameras"]) == 4 and first["predicted_time"]["total_s"] > 0
+    from btfcore.dome import get_device
+    plan = read_plan(out / "plan.json", get_device("tiny"))
+    assert [(s.turntable, s.leds[0]) for s in plan.shots] == [(s["turntable"], s["led"]) for s in steps]
+    assert {f["n_thesis"] for f in doc["record"]["fixed"]} == {100, 200, 400, None}
+    html = (out / "report.html").read_text()
+    assert "error_vs_shots.png" in html and (out / "error_vs_shots.png").exists()
+
+
+def test_acquire_needs_adaptive_and_a_valid_target(acquisition_evaluation, model_report, run_btf, tmp_path):
+    db = acquisition_evaluation[0].parent / "acquisition-database"
+    truth = sorted(db.glob("*-carpet.zarr"))[0]
+    base = ["--truth", truth, "--model", model_report, "--class", "carpet", "--out", tmp_path / "x"]
+    code, _, err = run_btf("acquire", "--target-error", "0.1", *base)
+    assert code == 2 and "--adaptive" in err
+    code, _, err = run_btf("acquire", "--adaptive", "--target-error", "3", *base)
+    assert code == 2 and "target-error" in err
+    code, _, err = run_btf("acquire", "--adaptive", "--target-error", "0.1", *base[:4], "--class", "cloth",
+                           *base[6:])
+    assert code == 2 and "cloth" in err

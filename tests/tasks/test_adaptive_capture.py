@@ -1,0 +1,71 @@
+"""tasks.adaptive: the simulator's executor, plans in acquisition order, fixed curves, the bars."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from btfcore.acquisition.noise import SensorNoise
+from btfcore.acquisition.strategies import Geometry
+from btfcore.dome import get_device
+from tasks.adaptive import adaptive_bars, adaptive_material, adaptive_plan, shots_to_reach, simulated_measure
+
+DEVICE = get_device("tiny")                              # 3 turntable positions x 4 cameras x 16 LEDs
+GEOMETRY = Geometry(DEVICE.n_turn, DEVICE.n_cam, DEVICE.n_leds, 6, 6)
+
+
+def _material(seed: int = 0, k: int = 5):
+    rng = np.random.default_rng(seed)
+    light, view, _ = DEVICE.lv_directions()
+    base = np.clip(light[:, 2], 0.05, None)[:, None] * np.clip(view[:, 2], 0.1, None)[:, None]
+    train = base * rng.uniform(0.2, 1.0, (1, 300)) + 0.02 * rng.uniform(0, 1, (base.shape[0], 300))
+    Uf, sf, _ = np.linalg.svd(train, full_matrices=False)
+    truth = base * rng.uniform(0.2, 1.0, (1, 36)) + 0.02 * rng.uniform(0, 1, (base.shape[0], 36))
+    return Uf[:, :k], sf[:k], np.repeat(truth[..., None], 3, axis=2).reshape(-1, 6, 6, 3), light, view
+
+
+def test_simulated_measure_is_seeded_and_unbiased():
+    _, _, truth, _, _ = _material()
+    flat = truth.reshape(truth.shape[0], -1, 3).astype(np.float32)
+    rows = np.array([0, 16, 32, 48])
+    y1, g1 = simulated_measure(flat, SensorNoise(), [0, 0])(0, rows)
+    y2, _ = simulated_measure(flat, SensorNoise(), [0, 0])(0, rows)
+    y3, _ = simulated_measure(flat, SensorNoise(), [0, 0])(1, rows)
+    assert np.array_equal(y1, y2) and not np.array_equal(y1, y3)
+    assert y1.shape == (4, 36, 3) and g1.shape == (4,)
+    assert np.mean(y1) == pytest.approx(np.mean(flat[rows]), rel=0.02)
+
+
+def test_plan_keeps_the_acquisition_order():
+    plan = adaptive_plan(DEVICE, [33, 2, 17])
+    assert [(s.turntable, s.leds) for s in plan.shots] == [(2, (1,)), (0, (2,)), (1, (1,))]
+    assert all(s.cameras == tuple(range(DEVICE.n_cam)) for s in plan.shots)
+
+
+def test_adaptive_material_records_steps_and_fixed_curves(tmp_path):
+    U, sigma, truth, light, view = _material()
+    rec = adaptive_material(U, sigma, GEOMETRY, truth, SensorNoise(), DEVICE, target=0.0, budget=10, seed=1,
+                            light_dir=light, view_dir=view, sampling_steps=50, plans_dir=tmp_path / "plans")
+    assert rec["n_shots"] == len(rec["steps"]) == 10 and rec["stopped"] == "budget"
+    assert len(list((tmp_path / "plans").glob("step_*.json"))) == 10
+    assert rec["predicted_time"]["n_shots"] == 10 and rec["predicted_time"]["total_s"] > 0
+    names = [f["n_thesis"] for f in rec["fixed"]]
+    assert names == [100, 200, 400, None]
+    assert all(np.isfinite(f["error"]) for f in rec["fixed"])
+    assert all(s["true"] is not None for s in rec["steps"])
+
+
+def test_bars_count_shots_to_the_fixed_error():
+    def rec(cls, trues, fixed, pred):
+        steps = [{"n_shots": i + 1, "true": t, "predicted": pred, "predicted_cv": pred} for i, t in enumerate(trues)]
+        return {"class": cls, "n_shots": len(trues), "steps": steps,
+                "fixed": [{"n_thesis": 400, "n_shots": 8, "error": fixed}]}
+    records = {"a": rec("carpet", [0.5, 0.3, 0.2, 0.2], 0.25, 0.2), "b": rec("carpet", [0.5, 0.2, 0.2, 0.2], 0.25, 0.3)}
+    assert shots_to_reach(records["a"]["steps"], 0.25) == 3
+    bars = adaptive_bars(records)
+    c = bars["shots_to_fixed_n400"]["carpet"]
+    assert c["mean_shots"] == 2.5 and c["ratio"] == pytest.approx(3.2) and bars["bar1_met"]
+    assert bars["share_within_25pct"]["posterior"] == 0.5 and not bars["bar2_met"]
+    records["c"] = rec("stone", [0.5, 0.4, 0.3, 0.3], 0.25, 0.3)           # never reaches it: its budget counts
+    bars = adaptive_bars(records)
+    assert bars["shots_to_fixed_n400"]["stone"]["never"] == 1 and not bars["bar1_met"]
