@@ -231,6 +231,9 @@ def evaluate(p: argparse.ArgumentParser) -> None:
                    help="acquisition: materials (one per class, structured classes first) whose reconstructions "
                         "are rendered and scored by rendering PSNR; each adds one reconstruction store per "
                         "strategy and its renderings [default: 1]")
+    p.add_argument("--no-adaptive", action="store_true",
+                   help="acquisition: skip the adaptive-capture loop on the held-out materials (docs/adaptive-capture.md; "
+                        "about a sixth of the run)")
     p.add_argument("--non-ideal", default=None, metavar="PRESET[,FIELD=VALUE...]",
                    help="acquisition: measure under a dome that is not ideal: 'realistic' (VMV §5.1's gains and "
                         "single exposure of the multiplexed captures, 1 %% LED drift, 0.1 px registration error, "

@@ -198,7 +198,7 @@ def _evaluation_config(args: argparse.Namespace):
     from tasks.evaluate_acquisition import EvaluationConfig
     return EvaluationConfig(device=args.eval_device, n_turntable=args.eval_turntable, texture_size=args.eval_texture,
                             materials_per_class=args.eval_materials_per_class, seed=args.eval_seed,
-                            render_materials=args.eval_render,
+                            render_materials=args.eval_render, adaptive=not args.no_adaptive,
                             non_ideal=_non_ideal(args.non_ideal) if args.non_ideal else IDEAL)
 
 

@@ -112,8 +112,8 @@ def demo_flow(out_dir: str, scheduler_address: str, seed: int = 0, n_materials: 
     It ends with the acquisition evaluation (``btf evaluate acquisition``: sparse, multiplexed and
     combined acquisition reconstructed leave-one-out against the truth of a second, larger simulated
     database, ``out/acquisition``), whose thesis claims the report shows: bonn-dome2 at one turntable
-    position, 2,178 light/view pairs (``btf evaluate acquisition`` defaults to two, 4,356), so that the
-    demo stays within three minutes (docs/decisions.md). With fewer than two materials per class the
+    position, 2,178 light/view pairs (``btf evaluate acquisition`` defaults to two, 4,356), and without
+    the adaptive-capture loop (``--no-adaptive``), so that the demo stays near three minutes (docs/decisions.md). With fewer than two materials per class the
     model database and the evaluation are skipped.
     """
     from flows.ingest import calibration_stage, ingest_database_stage
@@ -167,7 +167,8 @@ def demo_flow(out_dir: str, scheduler_address: str, seed: int = 0, n_materials: 
 
         start_eval = time.perf_counter()
         acquisition = evaluate_acquisition_flow(str(out / "acquisition-database"), str(out / "acquisition"),
-                                                scheduler_address, EvaluationConfig(seed=seed, n_turntable=1),
+                                                scheduler_address,
+                                                EvaluationConfig(seed=seed, n_turntable=1, adaptive=False),
                                                 progress)
         run["stages"]["evaluate acquisition"] = {"seconds": round(time.perf_counter() - start_eval, 3),
                                                  "reused": acquisition["reused"]}

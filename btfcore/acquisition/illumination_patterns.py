@@ -197,7 +197,7 @@ class PatternModel:
     @property
     def radiance(self) -> np.ndarray:
         """Typical radiance :math:`r_{vl}` of a texel under LED ``l`` in view ``v``, ``(n_views, n_leds)``."""
-        return np.sqrt(np.einsum("vlk,k->vl", self.blocks ** 2, self.prior))
+        return np.sqrt(self.blocks ** 2 @ self.prior)
 
     @property
     def signal_energy(self) -> float:
@@ -274,9 +274,9 @@ def _as_binary(patterns: Any, n_leds: int) -> np.ndarray:
 def _rows(model: PatternModel, patterns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Measurement rows ``(n_views, m, k)`` of :math:`(I \\otimes M) U` and their covariances ``(n_views, m, m)``."""
     p = patterns.astype(np.float64)
-    A = np.einsum("pl,vlk->vpk", p, model.blocks)                          # (I_views (x) M) U
+    A = np.matmul(p, model.blocks)                                         # (I_views (x) M) U, (V, m, k)
     x = model.radiance @ p.T                                               # x_vp = sum_{l in p} r_vl
-    omega = model.model_error ** 2 * np.einsum("pl,vl,ql->vpq", p, model.radiance ** 2, p)   # eps^2 M R_v^2 M^T
+    omega = model.model_error ** 2 * np.matmul(p * (model.radiance ** 2)[:, None, :], p.T)   # eps^2 M R_v^2 M^T
     idx = np.arange(p.shape[0])
     omega[:, idx, idx] += model.variance(x)                                # + D_v (photon + read noise)
     return A, omega
@@ -287,7 +287,7 @@ def _information(model: PatternModel, patterns: np.ndarray | None) -> np.ndarray
     F = np.diag(1.0 / model.prior)
     if patterns is not None and len(patterns):
         A, omega = _rows(model, patterns)
-        F += np.einsum("vpk,vpj->kj", A, np.linalg.solve(omega, A))
+        F += np.tensordot(A, np.linalg.solve(omega, A), axes=([0, 1], [0, 1]))   # sum_v A_v^T Omega_v^-1 A_v
     return F
 
 
@@ -356,8 +356,8 @@ def _others(model: PatternModel, others: np.ndarray) -> _Others:
     K = np.linalg.inv(omega)
     K = 0.5 * (K + K.transpose(0, 2, 1))
     W = model.model_error ** 2 * others.astype(np.float64)[None] * (model.radiance ** 2)[:, None, :]
-    E = U_t - np.einsum("vok,vop,vpn->vkn", A, K, W)
-    F = np.diag(1.0 / model.prior) + np.einsum("vpk,vpq,vqj->kj", A, K, A)
+    E = U_t - np.matmul(A.transpose(0, 2, 1), np.matmul(K, W))            # U_v^T - A_v^T K_v W_v
+    F = np.diag(1.0 / model.prior) + np.tensordot(A, np.matmul(K, A), axes=([0, 1], [0, 1]))
     return _Others(_inverse(F), E, W, K)
 
 
@@ -365,13 +365,14 @@ def _score(model: PatternModel, o: _Others, G: np.ndarray, Ep: np.ndarray, Wp: n
            rr: np.ndarray) -> np.ndarray:
     """Gains of candidates given ``E p`` ``(n_c, V, k)``, ``W p`` ``(n_c, V, m_o)``, typical radiance ``x`` and
     :math:`\\sum_{l \\in p} r_{vl}^2` ``rr`` ``(n_c, V)``."""
-    s = model.variance(x) + model.model_error ** 2 * rr - np.einsum("cvi,vij,cvj->cv", Wp, o.K, Wp)
+    Wv = Wp.transpose(1, 0, 2)                                             # (V, n_c, m_o)
+    s = model.variance(x) + model.model_error ** 2 * rr - np.sum(np.matmul(Wv, o.K) * Wv, axis=2).T
     return _gains(o.Q, G, Ep, s)
 
 
 def _candidate_gains(model: PatternModel, o: _Others, G: np.ndarray, cand: np.ndarray) -> np.ndarray:
     c = cand.astype(np.float64)
-    return _score(model, o, G, np.einsum("vkn,cn->cvk", o.E, c), np.einsum("von,cn->cvo", o.W, c),
+    return _score(model, o, G, np.matmul(o.E, c.T).transpose(2, 0, 1), np.matmul(o.W, c.T).transpose(2, 0, 1),
                   c @ model.radiance.T, c @ (model.radiance ** 2).T)
 
 
@@ -380,8 +381,8 @@ def _flip_scan(model: PatternModel, o: _Others, G: np.ndarray, pattern: np.ndarr
     r = model.radiance
     sign = np.where(pattern > 0, -1.0, 1.0)                                # flip: on -> off, off -> on
     p = pattern.astype(np.float64)
-    Ep = np.einsum("vkn,n->vk", o.E, p)[None] + sign[:, None, None] * o.E.transpose(2, 0, 1)
-    Wp = np.einsum("von,n->vo", o.W, p)[None] + sign[:, None, None] * o.W.transpose(2, 0, 1)
+    Ep = (o.E @ p)[None] + sign[:, None, None] * o.E.transpose(2, 0, 1)
+    Wp = (o.W @ p)[None] + sign[:, None, None] * o.W.transpose(2, 0, 1)
     x = (r @ p)[None] + sign[:, None] * r.T
     rr = (r ** 2 @ p)[None] + sign[:, None] * (r ** 2).T
     ok = (pattern.sum() > 1) | (pattern == 0)                              # never switch the last LED off
@@ -578,7 +579,7 @@ def pattern_operator(model: PatternModel, patterns: np.ndarray, *, dtype: DTypeL
     Aw = np.matmul(L_inv, A).reshape(-1, model.k)                          # W (I (x) M) U, W = blockdiag(L_v^-1)
     op = solve_operator(Aw, np.sqrt(model.prior), method="tikhonov", lam=1.0, fused=False, dtype=np.float64)
     Rw = op.coefficients.reshape(model.k, model.n_views, p.shape[0])
-    R = np.einsum("kvi,vij->kvj", Rw, L_inv).reshape(model.k, -1)         # eq. (10) on W y
+    R = np.matmul(Rw.transpose(1, 0, 2), L_inv).transpose(1, 0, 2).reshape(model.k, -1)   # eq. (10) on W y
     dt = np.dtype(dtype)
     return dataclasses.replace(op, coefficients=R.astype(dt), basis=model.U.astype(dt), fused=None,
                                method="direct", rows=None)

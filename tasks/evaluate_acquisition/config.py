@@ -61,6 +61,9 @@ class EvaluationConfig:
         Keep the rendered materials' reconstruction stores (about 50 MB per
         strategy at the default scale); by default they are removed once
         rendered.
+    adaptive : bool
+        Also run the adaptive-capture loop on every held-out material (issue 20,
+        docs/adaptive-capture.md; about a sixth of the run). Not part of the scores key.
     non_ideal : DomeNonIdeality
         The dome's non-idealities applied to the simulated measurements
         (:mod:`btfcore.acquisition.nonideal_measurement`); the ideal dome by
@@ -82,6 +85,7 @@ class EvaluationConfig:
     render_materials: int = 1
     render_size: int = 64
     keep_reconstructions: bool = False
+    adaptive: bool = True
     non_ideal: DomeNonIdeality = IDEAL
 
     def __post_init__(self) -> None:

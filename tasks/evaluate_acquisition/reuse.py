@@ -49,8 +49,8 @@ RESULTS_VERSION = 3
 #: results: the model database does not change when they do.
 MODEL_DATABASE_VERSION = 1
 
-#: Config fields that only affect what is rendered and kept, not the scores.
-_RENDER_FIELDS = ("render_materials", "render_size", "keep_reconstructions")
+#: Config fields that only affect what is rendered, kept or added beside the scores, not the scores.
+_RENDER_FIELDS = ("render_materials", "render_size", "keep_reconstructions", "adaptive")
 
 
 def _hash(payload: Any) -> str:

@@ -61,6 +61,11 @@ def test_flow_writes_every_strategy_and_claim(acquisition_evaluation):
     for name in figs["renderings"]["images"]["point"].values():
         assert (out / "figures" / mid / name).is_file()
     assert summary["report_html"].endswith("report.html")
+    # issue 20: the adaptive loop ran on every held-out material, its bars and figure in both reports
+    adaptive = report["adaptive"]
+    assert list(adaptive["materials"]) == list(report["materials"]) and adaptive["bars"]
+    assert all(rec["n_shots"] >= 1 and rec["steps"] for rec in adaptive["materials"].values())
+    assert (out / adaptive["figure"]).is_file() and "Adaptive capture (leave-one-out" in html
 
 
 def test_cli_evaluate_acquisition_needs_db_and_out(capsys):
