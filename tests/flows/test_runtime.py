@@ -49,6 +49,16 @@ def test_a_failed_run_prints_no_prefect_traceback_unless_asked(runtime_session, 
     monkeypatch.setenv("PREFECT_API_URL", runtime_session[1])
     monkeypatch.delenv("PREFECT_LOGGING_LEVEL", raising=False)
     quiet_logs()                                           # as a `btf` run starts: the user set no level
+    # Prefect's console handler keeps the stream it was configured with; when an earlier test configured
+    # it, that is pytest's global capture (or a closed capfd file), which this test's capfd does not see
+    import logging
+    import sys
+
+    from prefect.logging.handlers import PrefectConsoleHandler
+    for handler in logging.getLogger().handlers + logging.getLogger("prefect").handlers:
+        if isinstance(handler, PrefectConsoleHandler):
+            monkeypatch.setattr(handler, "stream", sys.stderr)
+            monkeypatch.setattr(handler.console, "file", sys.stderr)   # it prints through a rich Console
 
     @task(name="bad-input-stage")
     def stage():
