@@ -35,6 +35,7 @@ import hashlib
 import json
 import os
 from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -181,6 +182,14 @@ def discover(db: str | os.PathLike, class_map: dict[str, str] | None = None,
         key = attrs.get("ingest_hash") or attrs.get("import_hash")      # ingested, or imported (btf import-btf)
         found.append(Material(material.get("material_id") or path.stem, str(cls), str(path), key,
                               int(light.shape[0]), tuple(attrs["texture_shape"]), rows_fingerprint(light, view)))
+    paths: dict[str, list[str]] = {}
+    for m in found:                  # the id names its bases in model.zarr and its leave-one-out merges
+        paths.setdefault(m.material_id, []).append(Path(m.path).name)
+    for mid, names in sorted(paths.items()):
+        if len(names) > 1:
+            problems.append(f"material_id {mid!r} is shared by {len(names)} stores ({', '.join(names)}): each material "
+                            "needs its own id (the stores are copies, or were simulated or ingested with the same "
+                            "name); keep one, or give each store its own file name and material id")
     counts: dict[str, list[str]] = {}
     for m in found:
         counts.setdefault(m.cls, []).append(m.material_id)
@@ -244,17 +253,30 @@ def blocks(path: str, basis: str, patch: int = 3, max_bytes: int | None = None
             kept.extend(read())
         yield from kept
 
+    def block(r0: int, r1: int) -> np.ndarray:
+        band = np.asarray(btf[:, r0:r1])                                     # (n_lv, rows, w, 3)
+        if linear:
+            return band.reshape(n_lv, -1)
+        x = to_log_yuv(band)
+        if basis == "abtf_log_y":
+            return patch_matrix(x[..., 0], patch, overlap=False)
+        return np.ascontiguousarray(x[..., CHANNELS.index(basis)].reshape(n_lv, -1))
+
+    bands = _bands(btf, multiple, max_bytes)
+    # read (and convert) the next band while the caller computes on this one, where two bands fit
+    ahead = max_bytes is None or 2 * 4 * n_lv * max(r1 - r0 for r0, r1 in bands) * int(np.prod(btf.shape[2:])) \
+        <= max_bytes
+
     def read() -> Iterator[np.ndarray]:
-        for r0, r1 in _bands(btf, multiple, max_bytes):
-            band = np.asarray(btf[:, r0:r1])                                 # (n_lv, rows, w, 3)
-            if linear:
-                yield band.reshape(n_lv, -1)
-                continue
-            x = to_log_yuv(band)
-            if basis == "abtf_log_y":
-                yield patch_matrix(x[..., 0], patch, overlap=False)
-            else:
-                yield np.ascontiguousarray(x[..., CHANNELS.index(basis)].reshape(n_lv, -1))
+        if not ahead:
+            yield from (block(r0, r1) for r0, r1 in bands)
+            return
+        with ThreadPoolExecutor(1, thread_name_prefix="btf-read-ahead") as pool:
+            pending = pool.submit(block, *bands[0]) if bands else None
+            for i in range(len(bands)):
+                current = pending.result()
+                pending = pool.submit(block, *bands[i + 1]) if i + 1 < len(bands) else None
+                yield current
 
     return cached if keep else read
 

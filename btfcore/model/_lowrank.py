@@ -172,22 +172,26 @@ def _as_block(b: Any, j: int, n_lv: int) -> np.ndarray:
 
 
 def for_each_block(
-    source: BlockSource, n_lv: int, visit: Callable[[np.ndarray], None], n_cols: int | None = None
+    source: BlockSource, n_lv: int, visit: Callable[[np.ndarray], None], n_cols: int | None = None,
+    norm: bool = True,
 ) -> tuple[float, int]:
     """One pass over the data: validate each block, call ``visit(block)``, return ``(||B||_F^2, n_tx)``.
 
     A NaN/Inf raises a ValueError naming the block, its index and B's column.
-    ``n_cols`` (from an earlier pass) must match this pass' column count.
+    ``n_cols`` (from an earlier pass) must match this pass' column count. ``norm=False`` (a later pass
+    over blocks an earlier one validated) skips the norm and the NaN/Inf test, a float64 pass over
+    every block, and returns NaN for the norm.
     """
-    norm_sq, col = 0.0, 0
+    norm_sq, col = (0.0 if norm else float("nan")), 0
     for j, raw in enumerate(source()):
         b = _as_block(raw, j, n_lv)
-        e = float(np.einsum("ij,ij->", b, b, dtype=np.float64))    # float64: ||B||^2 - sum sigma^2 cancels
-        if not np.isfinite(e):
-            check_finite(b, f"blocks[{j}]", col)
-            raise ValueError(f"blocks[{j}] is too large: its squared norm overflows float64")
+        if norm:
+            e = float(np.einsum("ij,ij->", b, b, dtype=np.float64))    # float64: ||B||^2 - sum sigma^2 cancels
+            if not np.isfinite(e):
+                check_finite(b, f"blocks[{j}]", col)
+                raise ValueError(f"blocks[{j}] is too large: its squared norm overflows float64")
+            norm_sq += e
         visit(b)
-        norm_sq += e
         col += b.shape[1]
     if col == 0 or (n_cols is not None and col != n_cols):
         raise ValueError(
@@ -198,6 +202,28 @@ def for_each_block(
 
 
 # --------------------------------------------------------------------------- small dense steps
+
+
+def orthonormalise(S: np.ndarray) -> np.ndarray:
+    """An orthonormal basis ``Q`` of span(``S``) (``(n, m)``, ``n >= m``, float64) by CholeskyQR2.
+
+    Twice :math:`R = \\mathrm{chol}(S^T S)`, :math:`S \\leftarrow S R^{-1}`: GEMMs and a small
+    triangular inverse, where LAPACK's Householder QR of a tall, narrow matrix runs far below the GEMM
+    rate (1.13 s against 0.49 s with the check below, 26,136 x 384 on 2 cores). The second pass restores
+    orthogonality to rounding while ``cond(S) < 1/sqrt(eps)`` (Fukaya et al., 2014); if a Cholesky
+    factorisation fails or ``||Q^T Q - I||`` stays above ``1e-10``, Householder QR is used instead.
+    Column signs may differ from :func:`numpy.linalg.qr`'s.
+    """
+    Q = S
+    try:
+        for _ in range(2):
+            R = np.linalg.cholesky(Q.T @ Q).T                       # Q^T Q = R^T R
+            Q = Q @ linalg.solve_triangular(R, np.eye(R.shape[0]))  # Q R^-1 as one GEMM
+    except np.linalg.LinAlgError:
+        return np.linalg.qr(S)[0]
+    if not np.all(np.isfinite(Q)) or np.abs(Q.T @ Q - np.eye(Q.shape[1])).max() > 1e-10:
+        return np.linalg.qr(S)[0]
+    return Q
 
 
 def fix_signs(U: np.ndarray) -> np.ndarray:

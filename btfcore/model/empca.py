@@ -35,7 +35,7 @@ import numpy as np
 
 from btfcore import BtfWarning
 from btfcore.model._lowrank import RANK_RTOL, Blocks, BlockSource, TruncatedSVD, as_block_source, check_int, check_k, \
-    check_rank, fix_signs, for_each_block, largest_angle, ritz
+    check_rank, fix_signs, for_each_block, largest_angle, orthonormalise, ritz
 
 __all__ = ["CRITERIA", "block_power_iteration", "check_iteration_args", "empca"]
 
@@ -114,7 +114,7 @@ def block_power_iteration(
     """
     if criterion not in CRITERIA:
         raise ValueError(f"criterion must be one of {CRITERIA}, got {criterion!r}")
-    C = np.linalg.qr(np.random.default_rng(seed).standard_normal((n_lv, n_basis)))[0]
+    C = orthonormalise(np.random.default_rng(seed).standard_normal((n_lv, n_basis)))
     n_cols, prev, change, it = None, None, np.inf, 0
     for it in range(1, max_iter + 1):
         S = np.zeros((n_lv, n_basis))
@@ -124,9 +124,10 @@ def block_power_iteration(
             X = cast[b.dtype].T @ b                                 # E-step X_j = (C^T C)^-1 C^T B_j  (Roweis §3)
             S[...] += b @ X.T                                       # M-step numerator sum_j B_j X_j^T
 
-        norm_sq, n_cols = for_each_block(source, n_lv, visit, n_cols)
-        if it == 1:
+        pass_norm_sq, n_cols = for_each_block(source, n_lv, visit, n_cols, norm=it == 1)
+        if it == 1:                                                 # the blocks are the same every pass
             check_k(k, n_lv, n_cols)
+            norm_sq = pass_norm_sq
         V, sigma = ritz(C, C.T @ S)                                 # T = sum_j X_j X_j^T = C^T S; Rayleigh-Ritz
         # compare only the Ritz vectors above the rank threshold: beyond the rank they are arbitrary
         kk = min(k, int(np.count_nonzero(sigma > rank_rtol * sigma[0]))) if sigma[0] > 0 else 0
@@ -139,7 +140,8 @@ def block_power_iteration(
         prev = (V, float(np.sum(sigma[:k] ** 2)))
         if tol is not None and change < tol:
             break
-        C = np.linalg.qr(S)[0]                                      # M-step C = S T^-1, orthonormalised
+        if it < max_iter:                                           # the last pass' S is not iterated on
+            C = orthonormalise(S)                                   # M-step C = S T^-1, orthonormalised
     check_rank(sigma, k, f"B ({n_lv}, {n_cols})", rank_rtol)
     converged = tol is None or change < tol
     return fix_signs(V[:, :k]), sigma[:k].copy(), it, change, converged, norm_sq

@@ -79,3 +79,16 @@ def test_empca_rejects_bad_arguments(kwargs, match):
     B = decaying()
     with pytest.raises(ValueError, match=match):
         empca(B, B.shape[0], K, **kwargs)
+
+
+def test_orthonormalise_spans_the_columns_and_falls_back_when_ill_conditioned():
+    from btfcore.model._lowrank import orthonormalise
+
+    rng = np.random.default_rng(3)
+    S = rng.standard_normal((500, 40)) @ np.diag(np.geomspace(1, 1e-4, 40))     # cond 1e4: CholeskyQR2
+    Q = orthonormalise(S)
+    assert np.abs(Q.T @ Q - np.eye(40)).max() < 1e-12
+    assert np.linalg.norm(S - Q @ (Q.T @ S)) < 1e-12 * np.linalg.norm(S)           # the same span
+    S[:, -1] = S[:, 0] + 1e-15 * rng.standard_normal(500)                          # numerically rank-deficient
+    Q = orthonormalise(S)                                                           # Householder QR instead
+    assert np.abs(Q.T @ Q - np.eye(40)).max() < 1e-12 and np.isfinite(Q).all()

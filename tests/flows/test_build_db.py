@@ -146,3 +146,17 @@ def test_scheduled_build_is_a_cron_deployment_and_needs_a_server(monkeypatch, ca
     monkeypatch.delenv("PREFECT_API_URL", raising=False)
     assert main(["schedule", "build-db", "db", "--out", "model", "--cron", "0 3 * * *"]) == 3
     assert "set PREFECT_API_URL to a running server" in capsys.readouterr().err
+
+
+def test_two_stores_of_one_material_id_are_named_before_any_fit(database, tmp_path):
+    """A copy of a store under another file name keeps its material id: build-db names both stores
+    instead of failing later in the leave-one-out merges (issue 19, found by the kill matrix)."""
+    db = tmp_path / "db"
+    for name in ("000-leather", "006-leather", "001-cloth", "007-cloth"):
+        shutil.copytree(database / f"{name}.zarr", db / f"{name}.zarr")
+    shutil.copytree(database / "000-leather.zarr", db / "000-leather-again.zarr")
+    with pytest.raises(ValueError) as err:
+        discover(db)
+    text = str(err.value)
+    assert "material_id '000-leather' is shared by 2 stores (000-leather-again.zarr, 000-leather.zarr)" in text, text
+    assert "1 problem(s)" in text and "give each store its own file name and material id" in text

@@ -80,3 +80,19 @@ def test_blocks_under_a_byte_bound_hold_the_same_columns(tmp_path):
         small = list(blocks(path, basis, max_bytes=12 * 16 * 3 * 4 * 3)())
         assert len(small) > 3
         np.testing.assert_array_equal(np.sort(np.concatenate(small, axis=1), axis=1), np.sort(whole, axis=1))
+
+
+def test_reading_ahead_yields_the_same_blocks_in_the_same_order(tmp_path):
+    """Without a bound (or where two bands fit it) the next band is read in a thread while the caller
+    computes; with one band's bytes as the bound the same bands are read in turn."""
+    btf = np.random.default_rng(4).uniform(0.1, 1, (12, 20, 16, 3)).astype(np.float32)
+    path = _store(tmp_path / "m.zarr", btf, 8)
+    one_band = 4 * 12 * 8 * 16 * 3
+    for basis in ("log_y", "als", "abtf_log_y"):
+        ahead, in_turn = list(blocks(path, basis)()), list(blocks(path, basis, max_bytes=one_band)())
+        assert len(ahead) == len(in_turn) == 3
+        for a, b in zip(ahead, in_turn):
+            np.testing.assert_array_equal(a, b)
+        source = blocks(path, basis)
+        next(iter(source()))                                   # a pass left early leaves no thread behind
+        assert len(list(source())) == 3
