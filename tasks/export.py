@@ -131,6 +131,7 @@ def export_exr(btf_path: str | os.PathLike, out_dir: str | os.PathLike, rows: Se
                   "btf_light_dir": light[row].astype(np.float32).tolist().__repr__(),
                   "btf_view_dir": view[row].astype(np.float32).tolist().__repr__()}
         tmp = path.with_suffix(".exr.tmp")
+        kill_point("file-writing")
         with OpenEXR.File(header, {"RGB": texture}) as f:
             f.write(str(tmp))
         kill_point("file-replace")

@@ -17,6 +17,8 @@ point                             where
 ``commit-start``                  a staged replacement is complete, before the first rename of
                                   :func:`tasks.staging.commit_staged`
 ``commit-between-renames``        the old output is renamed aside, the new one not yet in place
+``file-writing``                  a single-file output (Bonn file, PNG, EXR, model, samples, plan) is
+                                  computed, its temporary file beside its path not yet written
 ``file-replace``                  a single-file output (Bonn file, PNG, EXR, model, samples, plan) is
                                   written beside its path, before the rename that puts it in place
 ================================  ==========================================================

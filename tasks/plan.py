@@ -112,6 +112,7 @@ def write_plan(plan: CapturePlan, path_json: str | Path, path_csv: str | Path | 
     path_json = Path(path_json)
     path_json.parent.mkdir(parents=True, exist_ok=True)
     tmp = path_json.with_name(path_json.name + ".tmp")
+    kill_point("file-writing")
     tmp.write_text(json.dumps(doc, indent=1))
     kill_point("file-replace")
     tmp.replace(path_json)

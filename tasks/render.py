@@ -149,6 +149,7 @@ def write_png(path: str | os.PathLike, srgb: np.ndarray) -> Path:
     if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
         raise ValueError(f"srgb must be an (rows, cols, 3) uint8 image, got {rgb.dtype} {rgb.shape}")
     tmp = p.with_name(f".{p.stem}.tmp{p.suffix}")          # never a half-written image at ``path``
+    kill_point("file-writing")
     if not cv2.imwrite(str(tmp), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
         raise OSError(f"OpenCV could not write {p}; check the folder and the .png suffix")
     kill_point("file-replace")

@@ -292,6 +292,7 @@ def write_samples(doc: dict[str, Any], path: str | os.PathLike) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
+    kill_point("file-writing")
     tmp.write_text(json.dumps(doc, indent=1))
     kill_point("file-replace")
     tmp.replace(path)

@@ -107,6 +107,7 @@ def save_model(path: str | os.PathLike, state: dict[str, Any], config: Any, prov
                "config": json.dumps(config.to_json()), "provenance": json.dumps(provenance, default=str),
                "state_dict": state, "sha256": _digest(state)}
     tmp = path.with_name(f".{path.name}.tmp")
+    kill_point("file-writing")
     torch.save(payload, tmp)
     kill_point("file-replace")
     os.replace(tmp, path)                                  # never a half-written model at ``path``

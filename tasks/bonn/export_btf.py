@@ -412,6 +412,7 @@ def export_store(store_path: str | os.PathLike, out_file: str | os.PathLike, *, 
                         max_bytes=max_bytes)
     partial = plan.out.with_name(plan.out.name + ".partial")
     try:
+        kill_point("file-writing")
         if plan.format == "bdi":
             header, summary = _write_bdi(plan, partial, lines_per_chunk)
         else:

@@ -450,15 +450,19 @@ def test_ingest_measurement(btf, tmp_path):
 
 def file_matrix(btf: Btf, tmp_path: Path, args: Callable[[Path], tuple[Any, ...]], files: tuple[str, ...],
                 replace: tuple[str, ...] = (), name: str = "out") -> None:
-    """A command whose output ``OUT`` (named ``name``) is a file, or a folder of ``files``: killed after
-    writing its (first) file beside its path, before the rename (``file-replace``), nothing is at the
-    path; the rerun writes the reference's bytes and leaves nothing else; a run replacing them
+    """A command whose output ``OUT`` (named ``name``) is a file, or a folder of ``files``: killed once its
+    output is computed, before anything is written (``file-writing``), nothing is at or beside the path;
+    killed after writing its (first) file beside its path, before the rename (``file-replace``), nothing
+    is at the path; the rerun writes the reference's bytes and leaves nothing else; a run replacing them
     (``replace``: e.g. ``--overwrite``) killed at the same point leaves them as they were."""
     reference, out = tmp_path / "reference" / name, tmp_path / "killed" / name
     for path in (reference, out):
         path.parent.mkdir()
     btf.ok(*args(reference))
     expected = {file: _file_content(reference / file) for file in files}
+    btf.killed("file-writing", *args(out))
+    left = [p for p in out.parent.rglob("*") if p.is_file() and p.suffix != ".lock"]   # the dead writer's lock stays
+    assert not left, f"written before file-writing: {left}"
     btf.killed("file-replace", *args(out))
     assert not (out / files[0]).exists()
     btf.ok(*args(out))
@@ -607,6 +611,8 @@ def test_superres_train(btf, ingested, tmp_path):
     for path in (reference, out):
         path.parent.mkdir()
     btf.ok(*args(reference))
+    btf.killed("file-writing", *args(out))                   # trained, nothing written: the rerun trains again
+    assert [p.name for p in out.parent.iterdir()] == ["m.pt.lock"]     # only the dead writer's lock
     btf.killed("file-replace", *args(out))
     assert not out.exists() and (out.parent / ".m.pt.tmp").exists()
     btf.ok(*args(out))
@@ -619,8 +625,8 @@ def test_superres_train(btf, ingested, tmp_path):
 
 
 def test_export_exr(btf, ingested, tmp_path):
-    """`btf export-exr` writes its files in this process, each beside its path and renamed: killed before the
-    first rename no texture is there, before the fourth the first three; the rerun writes every file again
+    """`btf export-exr` writes its files in this process, each beside its path and renamed: killed before writing
+    the second file only the first is there; killed before the first rename no texture is there, before the fourth the first three; the rerun writes every file again
     (a store's textures are not keyed, so no file is taken as finished) with the reference's bytes; a rewrite
     killed before its last rename leaves every file whole."""
 
@@ -632,6 +638,11 @@ def test_export_exr(btf, ingested, tmp_path):
     expected = {p.name: p.read_bytes() for p in reference.iterdir()}
     files = sorted(expected)
     assert len(files) == 6 and all(name.endswith(".exr") for name in files)
+    early = tmp_path / "killed-writing"
+    btf.killed("file-writing:2", *args(early))               # the first file in place, the second not begun
+    assert sorted(p.name for p in early.iterdir()) == files[:1]
+    btf.ok(*args(early))
+    assert {p.name: p.read_bytes() for p in early.iterdir()} == expected
     btf.killed("file-replace", *args(out))
     assert not list(out.glob("*.exr"))
     btf.killed("file-replace:4", *args(out))
