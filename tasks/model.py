@@ -264,7 +264,7 @@ def blocks(path: str, basis: str, patch: int = 3, max_bytes: int | None = None
 
     bands = _bands(btf, multiple, max_bytes)
     # read (and convert) the next band while the caller computes on this one, where two bands fit
-    ahead = max_bytes is None or 2 * 4 * n_lv * max(r1 - r0 for r0, r1 in bands) * int(np.prod(btf.shape[2:])) \
+    ahead = max_bytes is None or 2 * 4 * n_lv * max((r1 - r0 for r0, r1 in bands), default=0) * int(np.prod(btf.shape[2:])) \
         <= max_bytes
 
     def read() -> Iterator[np.ndarray]:

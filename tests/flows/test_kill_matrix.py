@@ -590,7 +590,7 @@ def _model_file(path: Path, root: Path | None = None) -> dict[str, Any]:
     (and with the paths below ``root`` written as ``ROOT``)."""
     import torch
 
-    payload = torch.load(path, map_location="cpu", weights_only=False)
+    payload = torch.load(path, map_location="cpu", weights_only=True)    # strings and tensors only
     state = {name: (str(t.dtype), tuple(t.shape), t.numpy().tobytes()) for name, t in payload.pop("state_dict").items()}
     text = payload.pop("provenance")
     provenance = _without(json.loads(text if root is None else text.replace(str(root), "ROOT")),

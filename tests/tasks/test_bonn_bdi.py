@@ -6,16 +6,14 @@ from __future__ import annotations
 import bz2
 import dataclasses
 import io
-import json
 import pickle
 import struct
-import subprocess
-import sys
 import tracemalloc
 from pathlib import Path
 
 import numpy as np
 import pytest
+from traced import fresh_call
 
 from tasks.bonn.bdi import (BDI_SIGNATURE, BZIP2, BZIP2_LEVEL, RAW, SPARSE, Bdi, read_bdi,
                             rewrite_bdi, write_bdi)
@@ -317,18 +315,12 @@ def _traced_peaks(path: str, compression: int, n_lv: int, h: int, w: int, n_c: i
 
 @pytest.mark.parametrize("compression", COMPRESSIONS)
 def test_write_and_read_hold_one_band_in_memory(tmp_path, compression):
-    # tracemalloc counts every thread of the process; threads left by earlier tests (Dask, Prefect)
-    # would be charged to this reader, so the measurement runs in a fresh interpreter
+    # measured in a fresh interpreter: tracemalloc would charge other tests' threads to the reader
     n_lv, h, w, n_c = 48, 256, 32, 3
     full_bytes = n_lv * h * w * n_c * 4                       # 4.7 MB of float32
     band_bytes = n_lv * 4 * w * n_c * 4                       # 74 kB per chunk of 4 lines
     path = tmp_path / "big.bdi"
-    code = ("import json, runpy, sys; m = runpy.run_path(sys.argv[1]); "
-            "print(json.dumps(m['_traced_peaks'](*sys.argv[2:3], *map(int, sys.argv[3:]))))")
-    out = subprocess.run([sys.executable, "-c", code, __file__, str(path), str(compression),
-                          str(n_lv), str(h), str(w), str(n_c)],
-                         capture_output=True, text=True, check=True, cwd=Path(__file__).parents[2])
-    peaks = json.loads(out.stdout.strip().splitlines()[-1])
+    peaks = fresh_call(_traced_peaks, str(path), compression, n_lv, h, w, n_c)   # tests/tasks/traced.py
     assert 12 * band_bytes < full_bytes / 5
     assert peaks["write"] < 12 * band_bytes + (peaks["bz2_state"] if compression == BZIP2 else 0), peaks
     assert peaks["open"] < h * w + 100_000, peaks             # the mask and little more
