@@ -27,6 +27,11 @@ a dome could execute, and OUT/plan.json holds all shots in acquisition order
 with the predicted time. OUT/report.json records every step (rows, predicted
 and true error); OUT/report.html plots error against shots beside the thesis'
 fixed random-swap samplings (n_s = 100/200/400 scaled) and the 7x7 parabolic map.
+Resumable: OUT/journal.json records every finished step under a key of the
+inputs; the same command after a kill replays the recorded steps (measures their
+groups again, chooses none) and continues, with the outputs of an uninterrupted
+run; a finished run's rerun prints its summary. A run of other inputs at --out
+is refused unless --overwrite.
 """
 
 
@@ -52,11 +57,18 @@ def add_acquire_arguments(p: argparse.ArgumentParser) -> None:
                         "is) [default: relative]")
     p.add_argument("--no-compare", action="store_true", help="skip the fixed samplings of the report")
     p.add_argument("--seed", type=int, default=0, help="seed of the simulated noise [default: 0]")
-    p.add_argument("--out", required=True, metavar="DIR", help="output folder (report, plans)")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder (report, plans, step journal)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="discard the steps and outputs of a run of other inputs at --out and start over")
 
 
 def run_acquire(args: argparse.Namespace) -> int:
-    """``btf acquire``: run the loop, write the report and plans, print the summary; the exit code."""
+    """``btf acquire``: run (or resume) the loop, write the report and plans, print the summary; the exit code.
+
+    The summary's ``reused`` is ``{"steps": [replayed, total]}`` (steps of a killed run taken from its
+    journal, not chosen again) and ``finished_before`` says that the run had finished already.
+    """
+    from flows.progress import say
     from tasks.adaptive import acquire_adaptive
 
     if not args.adaptive:
@@ -66,7 +78,8 @@ def run_acquire(args: argparse.Namespace) -> int:
         raise ValueError(f"--budget must be >= 1 shot, got {args.budget}")
     doc = acquire_adaptive(args.truth, args.model, args.cls, args.out, target=args.target_error,
                            budget=args.budget, device_name=args.device, seed=args.seed, compare=not args.no_compare,
-                           predictor=args.predictor, weighting=args.weighting)
+                           predictor=args.predictor, weighting=args.weighting, overwrite=args.overwrite,
+                           say=lambda line: say(line, not args.quiet))
     rec = doc["record"]
     last = rec["steps"][-1]
     summary: dict[str, Any] = {
@@ -75,6 +88,7 @@ def run_acquire(args: argparse.Namespace) -> int:
         "predicted_error_cv": last["predicted_cv"],
         "true_error": last["true"], "predicted_time_s": doc["predicted_time_s"],
         "fixed": {f["name"]: {"shots": f["n_shots"], "error": f["error"]} for f in rec.get("fixed", [])},
-        "report_html": doc["report_html"], "report_json": doc["report_json"]}
+        "report_html": doc["report_html"], "report_json": doc["report_json"],
+        "reused": doc["reused"], "finished_before": doc["finished_before"]}
     print(json.dumps(summary, indent=2))
     return 0

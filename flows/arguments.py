@@ -172,6 +172,9 @@ def build_db(p: argparse.ArgumentParser) -> None:
                    help="per-material U/Y and V/Y basis vectors [default: 100, capped by the data]")
     p.add_argument("--k-merged", type=int, default=None, metavar="K",
                    help="basis vectors kept by each merge [default: 2048, capped by the data]")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace a model store of another light/view sampling (or anything else) at OUT/model.zarr: "
+                        "the new one is built beside it (model.partial.zarr) and put in place once complete")
 
 
 def schedule(p: argparse.ArgumentParser) -> None:
@@ -249,10 +252,12 @@ def evaluate(p: argparse.ArgumentParser) -> None:
 
 def validate(p: argparse.ArgumentParser) -> None:
     """The arguments of ``btf validate``."""
-    p.add_argument("stores", nargs="+", metavar="STORE")
+    p.add_argument("stores", nargs="+", metavar="STORE",
+                   help="capture, BTF, measurement or model store (.zarr; a `btf build-db` folder: its model.zarr)")
     p.add_argument("--allow-incomplete", action="store_true", help="accept stores whose run has not finished")
     p.add_argument("--deep", action="store_true",
-                   help="read every chunk and verify its checksum (reads the whole store, one chunk at a time)")
+                   help="read every chunk, verify its checksum and count the NaN and Inf values of float arrays "
+                        "(reads the whole store, one chunk at a time)")
 
 
 def reconstruct(p: argparse.ArgumentParser) -> None:

@@ -213,7 +213,8 @@ def _non_ideal(text: str):
 
 def _evaluate(args: argparse.Namespace) -> int:
     from tasks.ingest import btf_error_against_truth
-    from tasks.report import write_json
+    from tasks.report import json_text
+    from tasks.staging import write_file
     from tasks.stores import open_capture_store
 
     if not args.truth or not args.btf:
@@ -222,7 +223,9 @@ def _evaluate(args: argparse.Namespace) -> int:
         raise ValueError(f"{args.truth} has no ground truth (truth/ group); give a simulated capture store")
     metrics = {"evaluate": args.what, "truth": str(args.truth), "btf": str(args.btf),
                **btf_error_against_truth(args.btf, args.truth)}
-    write_json(args.report or "report.json", metrics)  # default not locked: only `ingest` writes it
+    # one file, whole or not at all (kill points file-writing, file-replace); the default is locked only
+    # for `evaluate ingest`, the one that writes it
+    write_file(args.report or "report.json", lambda tmp: tmp.write_text(json_text(metrics)))
     print(json.dumps(metrics, indent=2))
     return 0
 
@@ -253,39 +256,39 @@ def _cluster(args: argparse.Namespace) -> int:
 
 def _validate(args: argparse.Namespace) -> int:
     from tasks.integrity import CHECKSUM_NOTE, open_any_store, store_kind, unchecked_arrays, verify_store
+    from tasks.model import SCHEMA_NAME as MODEL_SCHEMA
+    from tasks.model_validate import validate_model_store
     from tasks.stores import validate_capture_store
     from tasks.stores.btf import SCHEMA_NAME as BTF_SCHEMA
     from tasks.stores.btf import validate_btf_store
+    from tasks.stores.measurement import SCHEMA_NAME as MEASUREMENT_SCHEMA
+    from tasks.stores.measurement import validate_measurement_store
 
-    opened_only = ("btf-measurement", "btf-model")   # no schema check beyond opening (yet)
+    validators = {BTF_SCHEMA: validate_btf_store, MEASUREMENT_SCHEMA: validate_measurement_store,
+                  MODEL_SCHEMA: validate_model_store}
     failed = 0
     for path in args.stores:
         try:
-            group, _ = open_any_store(path)
+            group, opened = open_any_store(path)             # a build-db folder: its model.zarr
         except (FileNotFoundError, ValueError):
-            group = None                                     # validate_capture_store says what is there
-        kind = store_kind(group) if group is not None else None
+            group, opened = None, path                       # validate_capture_store says what is there
+        validate = validators.get(store_kind(group) if group is not None else None, validate_capture_store)
         lines: list[str] = []
-        if kind in opened_only:
-            status = f"valid ({kind} store opened; schema checks are for capture and BTF stores"
-            status += ")" if args.deep else ", --deep reads every chunk)"
-        else:
-            status = "valid"
-            validate = validate_btf_store if kind == BTF_SCHEMA else validate_capture_store
-            for problem in validate(path, require_complete=not args.allow_incomplete):
-                if args.deep and (problem.index or "").startswith("chunk "):
-                    continue                                 # --deep names each of these chunks below
-                where = f"[{problem.index}]" if problem.index else ""
-                lines.append(f"{problem.array}{where}: expected {problem.expected}, found {problem.found}. "
-                             f"{problem.hint}")
-        if group is not None and args.deep:
-            lines += [f"array {p.array}, chunk {p.chunk}: {p.problem}; {p.hint}" for p in verify_store(group)]
+        for problem in validate(opened, require_complete=not args.allow_incomplete):
+            if args.deep and (problem.index or "").startswith("chunk "):
+                continue                                     # --deep names each of these chunks below
+            where = f"[{problem.index}]" if problem.index else ""
+            lines.append(f"{problem.array}{where}: expected {problem.expected}, found {problem.found}. "
+                         f"{problem.hint}")
+        if group is not None and args.deep:                  # damaged chunks, and NaN/Inf in float arrays
+            lines += [f"array {p.array}, chunk {p.chunk}: {p.problem}; {p.hint}"
+                      for p in verify_store(group, finite=True)]
         notes = [CHECKSUM_NOTE] if group is not None and unchecked_arrays(group) else []
         if lines:
             failed += 1
             print(f"{path}: {len(lines)} problem(s)")
         else:
-            print(f"{path}: {status}")
+            print(f"{path}: valid")
         for line in lines + [f"note: {n}" for n in notes]:
             print(f"  {line}")
     return EXIT_BAD_INPUT if failed else 0
@@ -334,7 +337,9 @@ def _prepare_resample(args: argparse.Namespace, prepared: dict) -> None:
 def _prepare_build_db(args: argparse.Namespace, prepared: dict) -> None:
     from tasks.model import check_model_target, discover, read_class_map
 
-    check_model_target(Path(args.out) / "model.zarr", discover(args.db, read_class_map(args.classes)))
+    materials = discover(args.db, read_class_map(args.classes))
+    if not args.overwrite:
+        check_model_target(Path(args.out) / "model.zarr", materials)
 
 
 def _prepare_ingest(args: argparse.Namespace, prepared: dict) -> None:
@@ -374,7 +379,8 @@ def _build_db_flow(args: argparse.Namespace, address: str, prepared: dict) -> di
 
     settings = with_k(ModelSettings(k_class=args.k_merged, k_global=args.k_merged), log_y=args.k_log_y,
                       u_y=args.k_chroma, v_y=args.k_chroma)
-    report = build_db_flow(args.db, args.out, address, settings, classes=args.classes, progress=not args.no_progress)
+    report = build_db_flow(args.db, args.out, address, settings, classes=args.classes, progress=not args.no_progress,
+                           overwrite=args.overwrite)
     out = Path(args.out).resolve()
     return {"command": "build-db", "out": str(out), "model": report["model"], "trends": report["trends"],
             "report_json": str(out / "report.json"), "report_html": str(out / "report.html")}
@@ -477,7 +483,10 @@ COMMANDS: dict[str, Command] = {command.name: command for command in (
                         "of linear RGB (paper 4), eigenspace merges per class and then globally, and per-class 3x3 "
                         "ABTF patch bases. Writes OUT/model.zarr, OUT/report.json (thesis Table 1 from a "
                         "leave-one-out evaluation) and OUT/report.html. A rerun reuses every basis whose inputs did "
-                        "not change, so adding a material recomputes only it, its class and the global merge.",
+                        "not change, so adding a material recomputes only it, its class and the global merge. A "
+                        "complete OUT/model.zarr is never changed in place: the build works on a copy beside it "
+                        "(model.partial.zarr, hard links to its files) that replaces it once complete, so a failed "
+                        "or killed run leaves the old database whole (a rerun resumes the copy).",
             add_arguments=arguments.build_db, prepare=_prepare_build_db, flow=_build_db_flow,
             inputs={"db": "DB", "classes": "--classes"}),
     Command("schedule", help="serve a scheduled deployment (cron) of a database build from this shell",
@@ -515,11 +524,12 @@ COMMANDS: dict[str, Command] = {command.name: command for command in (
             inputs={"btf": "--btf", "db": "DB", "truth": "--truth"},
             outputs={"out": "--out", "report": "--report"}),
     Command("validate", help="check stores and list every problem",
-            description="Open each store and print every problem found; exit 2 if any. A capture store is validated "
-                        "against the btf-capture schema (docs/capture-store.md), including a chunk file for every "
-                        "bracket marked written; a BTF, measurement or model store (a `btf build-db` folder means "
-                        "its model.zarr) is opened. --deep also reads every chunk of every array and names each "
-                        "corrupt, truncated or missing one (array and chunk index). A store written before chunk "
+            description="Open each store and print every problem found; exit 2 if any. A capture, BTF, measurement "
+                        "or model store (a `btf build-db` folder means its model.zarr) is validated against its "
+                        "schema (docs/capture-store.md, btf-store.md, measurement-store.md, model-database.md), a "
+                        "capture store including a chunk file for every bracket marked written. --deep also reads "
+                        "every chunk of every array and names each corrupt, truncated or missing one and each that "
+                        "holds NaN or Inf values (array, chunk index and count). A store written before chunk "
                         "checksums were added is reported as such: --deep can then only find unreadable chunks, not "
                         "changed bytes.",
             add_arguments=arguments.validate, run=_validate, outputs={}),

@@ -15,7 +15,7 @@ from tasks.model import ModelSettings
 # Retrying the stage resumes it: bases whose key is stored are reused; bad input is not retried.
 @task(name="model-database", **RETRY_ONCE, cache_policy=NO_CACHE)
 def build_stage(db: str, out: str, scheduler_address: str, settings: ModelSettings,
-                class_map: dict[str, str] | None, progress: bool) -> dict[str, Any]:
+                class_map: dict[str, str] | None, progress: bool, overwrite: bool = False) -> dict[str, Any]:
     from distributed import Client
 
     from flows.progress import progress_bars
@@ -23,7 +23,8 @@ def build_stage(db: str, out: str, scheduler_address: str, settings: ModelSettin
 
     units = {"material bases": "material", "leave-one-out": "material"}
     with progress_bars(progress, units) as bar, Client(scheduler_address, set_as_default=False) as client:
-        return build_database(db, out, client, settings=settings, class_map=class_map, progress=bar)
+        return build_database(db, out, client, settings=settings, class_map=class_map, progress=bar,
+                              overwrite=overwrite)
 
 
 @task(name="model-report", cache_policy=NO_CACHE)
@@ -37,7 +38,7 @@ def model_report_stage(out: str, summary: dict[str, Any], settings: ModelSetting
 
 @flow(name="btf-build-db", log_prints=False)
 def build_db_flow(db: str, out: str, scheduler_address: str, settings: ModelSettings = ModelSettings(),
-                  classes: str | None = None, progress: bool = True) -> dict[str, Any]:
+                  classes: str | None = None, progress: bool = True, overwrite: bool = False) -> dict[str, Any]:
     """Ingested BTF stores in ``db`` -> ``out/model.zarr`` with ``out/report.json`` and ``report.html``.
 
     Materials are grouped by the class in their store (``classes``: a JSON
@@ -48,5 +49,5 @@ def build_db_flow(db: str, out: str, scheduler_address: str, settings: ModelSett
     """
     from tasks.model import read_class_map
 
-    summary = build_stage(db, out, scheduler_address, settings, read_class_map(classes), progress)
+    summary = build_stage(db, out, scheduler_address, settings, read_class_map(classes), progress, overwrite)
     return model_report_stage(out, summary, settings)

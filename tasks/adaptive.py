@@ -10,6 +10,8 @@ The numerics are :mod:`btfcore.acquisition.adaptive`; this module feeds them:
   thesis' random-swap samplings of n_s = 100, 200, 400 (light, turntable) pairs scaled to the device
   (paper 4 §5.2, :func:`btfcore.acquisition.strategies.scaled_pairs`) and the 7x7 parabolic map
   (paper 1 Fig. 3b);
+* the **step journal** of ``btf acquire --adaptive`` (``journal.json``, :func:`open_journal`): every
+  finished step, keyed by the run's inputs, so that a killed run resumes where it stopped;
 * the **report** (``report.json``, ``report.html`` with error against shots) and the **evaluation
   section** (:func:`evaluate_adaptive`): the loop leave-one-out on every held-out material of the
   truth database with its class's leave-one-out ALS basis, one Dask task per material, and the bars.
@@ -19,8 +21,11 @@ docs/adaptive-capture.md describes the method, the predictor and the measured nu
 
 from __future__ import annotations
 
+import hashlib
+import json
 import os
-from collections.abc import Sequence
+import shutil
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -37,11 +42,17 @@ from btfcore.acquisition.time_model import TimeModelParams, predict_time
 from btfcore.dome import Device
 from btfcore.model.colour import REC709_LUMA
 
-__all__ = ["ADAPTIVE_VERSION", "adaptive_plan", "adaptive_material", "evaluate_adaptive", "fixed_curves",
-           "simulated_measure", "write_adaptive_report"]
+__all__ = ["ADAPTIVE_VERSION", "JOURNAL", "acquire_key", "adaptive_plan", "adaptive_material", "evaluate_adaptive",
+           "fixed_curves", "open_journal", "simulated_measure", "write_adaptive_report"]
 
 #: Raised when the adaptive records' meaning changes (their reuse key includes it).
 ADAPTIVE_VERSION = 1
+#: The step journal of ``btf acquire --adaptive`` in its output folder (:func:`open_journal`).
+JOURNAL = "journal.json"
+#: What ``btf acquire --adaptive`` writes in its output folder besides the journal.
+ACQUIRE_OUTPUTS = ("plans", "plan.json", "plan.csv", "report.json", "report.html", "error_vs_shots.png")
+#: Relative tolerance of a replayed step's recomputed errors against its journal entry.
+REPLAY_RTOL = 1e-6
 
 
 # --------------------------------------------------------------------------- executor and scores
@@ -130,11 +141,20 @@ def adaptive_plan(device: Device, groups: Sequence[int], exposure: ExposureModel
 def adaptive_material(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, truth: np.ndarray, noise: SensorNoise,
                       device: Device, *, target: float, budget: int, seed: int, light_dir: np.ndarray | None = None,
                       view_dir: np.ndarray | None = None, sampling_steps: int = 1500, plans_dir: Path | None = None,
-                      predictor: str = "posterior", weighting: str = "relative") -> dict[str, Any]:
+                      predictor: str = "posterior", weighting: str = "relative",
+                      replay: Sequence[dict[str, Any]] = (),
+                      on_record: Callable[[dict[str, Any], dict[str, Any] | None], None] | None = None
+                      ) -> dict[str, Any]:
     """The loop on one simulated material (truth ``(n_lv, h, w, 3)``), with the fixed samplings beside it.
 
     With ``plans_dir`` every step's shot is written there as ``step_NNN.json`` / ``.csv`` (a plan of one
-    shot, with its predicted time). Returns a plain-JSON record (steps, predicted time, fixed curves).
+    shot, with its predicted time). ``replay``: the records of the first steps of an earlier run of the
+    same inputs (a journal's); their groups are measured again instead of chosen
+    (:func:`~btfcore.acquisition.adaptive.run_adaptive`'s ``replay``), their plans are not written again
+    (unless missing) and the returned record holds them as given (with their CPU seconds).
+    ``on_record(step, recorded)`` is called after every step (its plan written): ``step`` its plain-JSON
+    record, ``recorded`` the replayed record or None for a step this run chose. Returns a plain-JSON
+    record (steps, predicted time, fixed curves).
     """
     from tasks.plan import write_plan
 
@@ -142,16 +162,21 @@ def adaptive_material(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, trut
     measure = simulated_measure(truth, noise, [seed, 0])
 
     def on_step(step: Any, _: np.ndarray) -> None:
+        recorded = replay[step.step] if step.step < len(replay) else None
         if plans_dir is not None:
-            plan = adaptive_plan(device, [step.group])
-            write_plan(plan, plans_dir / f"step_{step.step:03d}.json", plans_dir / f"step_{step.step:03d}.csv",
-                       device=device)
+            path = plans_dir / f"step_{step.step:03d}.json"
+            if recorded is None or not path.exists():
+                write_plan(adaptive_plan(device, [step.group]), path, path.with_suffix(".csv"), device=device)
+        if on_record is not None:
+            on_record(step.to_dict(), recorded)
 
     result: AdaptiveResult = run_adaptive(U, sigma, geometry, noise, measure, n_tx=truth.shape[1], target=target,
                                           budget=budget, seed=seed, score=truth_score(U, truth), on_step=on_step,
-                                          predictor=predictor, weighting=weighting)
+                                          predictor=predictor, weighting=weighting,
+                                          replay=[int(s["group"]) for s in replay])
     plan = adaptive_plan(device, result.groups)
-    record = {**result.to_dict(), "pairs": group_pairs(result.groups, geometry.n_leds).tolist(),
+    steps = [dict(s) for s in replay] + [s.to_dict() for s in result.steps[len(replay):]]
+    record = {**result.to_dict(), "steps": steps, "pairs": group_pairs(result.groups, geometry.n_leds).tolist(),
               "predicted_time": predict_time(plan, TimeModelParams()).to_dict()}
     if light_dir is not None and view_dir is not None:
         record["fixed"] = fixed_curves(U, sigma, geometry, truth, noise, light_dir, view_dir, seed, sampling_steps,
@@ -335,12 +360,91 @@ def adaptive_bars(records: dict[str, dict[str, Any]], structured: Sequence[str] 
 # --------------------------------------------------------------------------- btf acquire --adaptive
 
 
+def acquire_key(inputs: dict[str, Any]) -> str:
+    """The key of a ``btf acquire --adaptive`` run: a hash of everything its steps and outputs depend on."""
+    return hashlib.sha256(json.dumps(inputs, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def _array_digest(*arrays: np.ndarray) -> str:
+    digest = hashlib.sha256()
+    for a in arrays:
+        a = np.ascontiguousarray(a)
+        digest.update(f"{a.dtype.str}{a.shape}".encode())
+        digest.update(a.tobytes())
+    return digest.hexdigest()[:16]
+
+
+def open_journal(out: Path, key: str, inputs: dict[str, Any], overwrite: bool = False) -> dict[str, Any]:
+    """The step journal ``OUT/journal.json`` of the run ``key``: the one on disk, or a new one.
+
+    The journal (written atomically after every step, :func:`tasks.report.write_json`) holds
+    ``{"schema", "version", "key", "inputs", "steps": [step records], "finished"}``. One of another key,
+    an unreadable one, or outputs without a journal are refused unless ``overwrite``, which deletes the
+    journal and the outputs of :data:`ACQUIRE_OUTPUTS` (nothing else in ``out``) and starts a new one.
+    The new journal is returned, not yet written.
+
+    Raises
+    ------
+    ValueError
+        ``out`` holds another run's steps or outputs and ``overwrite`` is false; the message names
+        the inputs that differ and the option.
+    """
+    path = out / JOURNAL
+    journal = None
+    if path.exists():
+        try:
+            journal = json.loads(path.read_text())
+        except (OSError, ValueError):
+            journal = {}
+        journal = journal if isinstance(journal, dict) else {}
+        if journal.get("key") == key and journal.get("schema") == "btf-adaptive-journal":
+            return journal
+    found = [name for name in ACQUIRE_OUTPUTS if (out / name).exists()]
+    if journal is not None or found:
+        if not overwrite:
+            if journal:
+                old = journal.get("inputs") or {}
+                differ = sorted(k for k in {*old, *inputs} if old.get(k) != inputs.get(k)) or ["version"]
+                why = f"holds the step journal of a run of other inputs ({', '.join(differ)} differ)"
+            elif journal is not None:
+                why = f"holds an unreadable step journal {JOURNAL}"
+            else:
+                why = f"holds the outputs of a run without a step journal ({', '.join(found)})"
+            raise ValueError(f"--out {out} {why}; give --overwrite to discard them and start over, or another "
+                             "--out (the same inputs resume the run)")
+        path.unlink(missing_ok=True)
+        for name in found:
+            if (out / name).is_dir():
+                shutil.rmtree(out / name)
+            else:
+                (out / name).unlink()
+    return {"schema": "btf-adaptive-journal", "version": ADAPTIVE_VERSION, "key": key, "inputs": inputs,
+            "steps": [], "finished": False}
+
+
+def _check_replayed(step: dict[str, Any], recorded: dict[str, Any], journal: Path) -> None:
+    """A replayed step, recomputed, must be its journal entry (CPU seconds aside): else the inputs changed."""
+    for name, value in recorded.items():
+        new = step.get(name)
+        same = (name == "cpu_s" or new == value or (isinstance(value, float) and isinstance(new, float)
+                                                    and bool(np.isclose(new, value, rtol=REPLAY_RTOL, atol=0))))
+        if not same:
+            raise ValueError(f"{journal}: step {recorded.get('step')} recorded {name} = {value!r}, its replay gives "
+                             f"{new!r}: the inputs changed although their key did not; give --overwrite to start "
+                             "over")
+
+
 def acquire_adaptive(truth_path: str | os.PathLike, model_path: str | os.PathLike, cls: str,
                      out_dir: str | os.PathLike, *, target: float, budget: int | None = None,
                      device_name: str | None = None, seed: int = 0, compare: bool = True,
-                     sampling_steps: int = 1500, predictor: str = "posterior", weighting: str = "relative"
-                     ) -> dict[str, Any]:
+                     sampling_steps: int = 1500, predictor: str = "posterior", weighting: str = "relative",
+                     overwrite: bool = False, say: Callable[[str], None] | None = None) -> dict[str, Any]:
     """``btf acquire --adaptive`` on a simulated material: the loop on a truth BTF store, plans, report.
+
+    Resumable (docs/adaptive-capture.md, "Resume"): every finished step is recorded in the journal
+    ``OUT/journal.json`` (:func:`open_journal`), keyed by :func:`acquire_key` of the inputs; a rerun
+    with the same inputs replays the recorded steps (measures their groups again, chooses nothing) and
+    continues, and its outputs equal an uninterrupted run's; a finished run's rerun only reads its report.
 
     Parameters
     ----------
@@ -351,15 +455,27 @@ def acquire_adaptive(truth_path: str | os.PathLike, model_path: str | os.PathLik
         ``btf build-db``'s output; the class ``cls``'s ALS basis (paper 4) is used.
     out_dir : path
         ``report.json``, ``report.html``, ``plans/step_NNN.json`` (one shot each), ``plan.json`` (all
-        shots in acquisition order, with the predicted time).
+        shots in acquisition order, with the predicted time), ``journal.json`` (the finished steps).
     target : float
         Stop when the predicted relative L2 error of log Y is at most this (a fraction).
     budget : int, optional
         Most shots (default: every (turntable, LED) group).
+    overwrite : bool
+        Discard the steps and outputs of a run of other inputs at ``out_dir`` (else refused).
+    say : callable, optional
+        ``say(line)``: an info line (a resumed run says how many steps it replays).
+
+    Returns
+    -------
+    doc : dict
+        ``report.json``'s document with ``report_json`` and ``report_html`` (the paths), ``reused``
+        (``{"steps": [replayed, total]}``) and ``finished_before`` (a finished run's rerun).
     """
     from btfcore.dome import get_device
+    from tasks.faults import kill_point
     from tasks.plan import write_plan
     from tasks.reconstruct import _basis, _check_sampling, open_model
+    from tasks.report import write_json
     from tasks.stores.btf import open_btf_store
 
     if not 0 < target < 1:
@@ -388,20 +504,52 @@ def acquire_adaptive(truth_path: str | os.PathLike, model_path: str | os.PathLik
     truth = np.asarray(truth_store.btf[...], dtype=np.float32)
     noise = SensorNoise(float(device.sensor.full_well_e), float(device.sensor.read_noise_e))
     n_groups = geometry.n_turn * geometry.n_leds
+    budget = min(budget or n_groups, n_groups)
+    inputs = {"version": ADAPTIVE_VERSION, "truth": truth_store.content_key or _array_digest(truth),
+              "basis": _array_digest(U, sigma), "class": cls, "device": device.name,
+              "geometry": [geometry.n_turn, geometry.n_cam, geometry.n_leds, h, w], "target": target,
+              "budget": budget, "seed": seed, "predictor": predictor, "weighting": weighting, "compare": compare,
+              "sampling_steps": sampling_steps}
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    rec = adaptive_material(U, sigma, geometry, truth, noise, device, target=target,
-                            budget=min(budget or n_groups, n_groups), seed=seed,
+    journal_path = out / JOURNAL
+    journal = open_journal(out, acquire_key(inputs), inputs, overwrite)
+    replay = list(journal["steps"])                            # the steps a killed run finished
+    if journal["finished"] and all((out / name).exists() for name in ACQUIRE_OUTPUTS):
+        doc = json.loads((out / "report.json").read_text())      # a finished run: nothing to do
+        return {**doc, "report_json": str(out / "report.json"), "report_html": str(out / "report.html"),
+                "reused": {"steps": [len(replay), len(replay)]}, "finished_before": True}
+    if replay and say is not None:
+        say(f"btf acquire: {journal_path}: resuming after {len(replay)} recorded step(s), replayed (measured "
+            "again, not chosen again)")
+    if not journal_path.exists():
+        kill_point("store-creating")                            # nothing written yet
+        write_json(journal_path, journal)
+        kill_point("store-created")                             # the empty journal in place, no step
+
+    def on_record(step: dict[str, Any], recorded: dict[str, Any] | None) -> None:
+        if recorded is not None:
+            _check_replayed(step, recorded, journal_path)
+            return
+        journal["steps"].append(step)
+        write_json(journal_path, journal)
+        kill_point("chunk-done")                                # one more step on disk
+
+    rec = adaptive_material(U, sigma, geometry, truth, noise, device, target=target, budget=budget, seed=seed,
                             light_dir=truth_store.light_dir if compare else None,
                             view_dir=truth_store.view_dir if compare else None, sampling_steps=sampling_steps,
-                            plans_dir=out / "plans", predictor=predictor, weighting=weighting)
+                            plans_dir=out / "plans", predictor=predictor, weighting=weighting,
+                            replay=replay, on_record=on_record)
     plan_doc = write_plan(adaptive_plan(device, rec["groups"]), out / "plan.json", out / "plan.csv", device=device)
     material = (attrs.get("material") or {}).get("material_id") or Path(str(truth_path)).stem
     summary = {"schema": "btf-adaptive-acquisition", "material": material, "class": cls, "target": target,
                "truth": str(truth_path), "model": str(model_path), "device": device.name,
                "geometry": [geometry.n_turn, geometry.n_cam, geometry.n_leds], "record": rec,
                "predicted_time_s": plan_doc["predicted_time"]["total_s"]}
-    return {**summary, **write_adaptive_report(out, summary)}
+    paths = write_adaptive_report(out, summary)
+    journal["finished"] = True                                  # every output in place
+    write_json(journal_path, journal)
+    return {**summary, **paths, "reused": {"steps": [len(replay), len(rec["steps"])]}, "finished_before": False}
 
 
 def adaptive_sections(section: dict[str, Any] | None) -> list[dict[str, Any]]:

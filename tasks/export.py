@@ -14,7 +14,7 @@ from typing import Sequence
 import numpy as np
 import zarr
 
-from tasks.faults import kill_point
+from tasks.staging import write_file
 from tasks.stores.btf import BtfStore, open_btf_store
 
 
@@ -130,11 +130,10 @@ def export_exr(btf_path: str | os.PathLike, out_dir: str | os.PathLike, rows: Se
         header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
                   "btf_light_dir": light[row].astype(np.float32).tolist().__repr__(),
                   "btf_view_dir": view[row].astype(np.float32).tolist().__repr__()}
-        tmp = path.with_suffix(".exr.tmp")
-        kill_point("file-writing")
-        with OpenEXR.File(header, {"RGB": texture}) as f:
-            f.write(str(tmp))
-        kill_point("file-replace")
-        tmp.replace(path)  # a finished file is never half-written
+
+        def write(tmp: Path) -> None:
+            with OpenEXR.File(header, {"RGB": texture}) as f:
+                f.write(str(tmp))
+        write_file(path, write)  # a finished file is never half-written
         written.append(path)
     return written

@@ -7,20 +7,25 @@ A testing hook, off unless an environment variable names a point (docs/architect
 point                             where
 ================================  ==========================================================
 ``store-creating``                a new store's skeleton is built at ``.X.zarr.creating``, not yet
-                                  renamed into place (:func:`tasks.staging.finish_store`)
-``store-created``                 the new store (or staging store) is in place, no chunk written yet
+                                  renamed into place (:func:`tasks.staging.finish_store`); ``btf acquire``:
+                                  a new run, nothing written to its output yet
+``store-created``                 the new store (or staging store) is in place, no chunk written yet;
+                                  ``btf acquire``: its empty step journal is in place
 ``chunk-done``                    the driver has awaited one more finished task, whose resume marker
-                                  is on disk (:func:`tasks.compute.wait_all`)
+                                  is on disk (:func:`tasks.compute.wait_all`); ``btf acquire``: one
+                                  more step is recorded in its journal (:func:`tasks.adaptive.open_journal`)
 ``chunk-written``                 a worker task has written a chunk's data but not yet its resume
                                   marker (one line before each marker write), or computed a result
                                   whose record is its marker (an evaluation's scores record)
 ``commit-start``                  a staged replacement is complete, before the first rename of
                                   :func:`tasks.staging.commit_staged`
 ``commit-between-renames``        the old output is renamed aside, the new one not yet in place
-``file-writing``                  a single-file output (Bonn file, PNG, EXR, model, samples, plan) is
-                                  computed, its temporary file beside its path not yet written
-``file-replace``                  a single-file output (Bonn file, PNG, EXR, model, samples, plan) is
-                                  written beside its path, before the rename that puts it in place
+``file-writing``                  a single-file output (Bonn file, PNG, EXR, model, samples, a plan's
+                                  JSON and CSV, `evaluate ingest`'s report) is computed, its temporary
+                                  file beside its path not yet written (:func:`tasks.staging.write_file`;
+                                  ``btf acquire``: each step's plan files, then the final ``plan.json``)
+``file-replace``                  such a file is written beside its path, before the rename that puts
+                                  it in place
 ================================  ==========================================================
 
 ``BTF_KILL_AT=POINT`` or ``BTF_KILL_AT=POINT:N``: the process that reaches ``POINT`` for the

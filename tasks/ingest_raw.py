@@ -42,7 +42,15 @@ import numpy as np
 from btfcore.capture.hdr import exposure_ratios
 from btfcore.dome import BAYER_PATTERNS, Device
 from tasks.compute import run_all
-from tasks.stores import CaptureMetadata, CaptureStore, create_capture_store, open_capture_store
+from tasks.stores import (
+    CaptureMetadata,
+    CaptureStore,
+    capture_target,
+    commit_capture,
+    create_capture_store,
+    finished_capture,
+    open_capture_store,
+)
 from tasks.stores.common import to_json_attr
 
 MANIFEST_COLUMNS = ("file", "turntable", "camera", "illumination", "exposure")
@@ -614,14 +622,20 @@ def import_raw(plan: RawImportPlan, device: Device, out: str | os.PathLike, clie
     """Write a validated raw import into a capture store, one view per task.
 
     With a ``distributed.Client`` the views run on the cluster; without, here.
-    A rerun resumes with the views not yet written. Brackets whose frames do not scale with their
-    exposure times are listed in the store's root attribute ``bracket_warnings`` (of every view: those
-    an earlier, killed run wrote are judged again from the store; :func:`bracket_flags`), or with
-    ``strict_brackets`` fail the import.
+    A rerun resumes with the views not yet written; with ``overwrite`` the new store is built beside
+    ``out`` and replaces it once complete (:func:`tasks.stores.capture.create_capture_store`).
+    Brackets whose frames do not scale with their exposure times are listed in the store's root
+    attribute ``bracket_warnings`` (of every view: those an earlier, killed run wrote are judged again
+    from the store; :func:`bracket_flags`), or with ``strict_brackets`` fail the import.
     :mod:`tasks.ingest_images` passes its own ``meta``, ``read_frame`` and the cameras' ``responses``
     ``(n_cam, n_codes, 3)`` (written to the store with ``response_info``).
     """
     meta = raw_import_metadata(plan, device, provenance) if meta is None else meta
+    key = meta.provenance["config_hash"]
+    target, fresh = capture_target(out, key, overwrite)
+    done = finished_capture(out, key) if target == out and not fresh else None
+    if done is not None:                  # a finished import of the same files and calibration
+        return done
     store = create_capture_store(out, meta, overwrite=overwrite)
     if responses is not None:
         store.write_response(responses, response_info or {})
@@ -632,7 +646,7 @@ def import_raw(plan: RawImportPlan, device: Device, out: str | os.PathLike, clie
         level = np.full((plan.shape[1], 1, *plan.frame_shape), meta.black_level, dtype=np.uint16)
         store.write_dark_frames(level)
     pending = store.pending_views()
-    args = [(str(out), store.meta, plan, t, c, read_frame, None if responses is None else responses[c],
+    args = [(store.path, store.meta, plan, t, c, read_frame, None if responses is None else responses[c],
              strict_brackets) for t, c in pending]
     if client is None:
         results = [import_view(*a) for a in args]
@@ -647,5 +661,4 @@ def import_raw(plan: RawImportPlan, device: Device, out: str | os.PathLike, clie
         flags += view_bracket_flags(frames, store.meta, plan, t, c, None if responses is None else responses[c])
     flags.sort(key=lambda f: (f["bracket"], f["frames"]))
     store.group.attrs.update(to_json_attr({"bracket_warnings": flags}))
-    store.mark_complete()
-    return open_capture_store(out)
+    return commit_capture(store, out, "import-raw")

@@ -17,7 +17,9 @@ store, the array and the chunk index, whatever stage or function read it.
 a time, and lists corrupt, truncated and missing chunks (``btf validate
 --deep``). A chunk is *missing* when the store's own resume markers
 (``written``) say it was written but its file is gone (Zarr would return the
-fill value for it); see :data:`WRITTEN_RULES`.
+fill value for it); see :data:`WRITTEN_RULES`. With ``finite=True`` it also
+counts the NaN and Inf values of every chunk of a float array it reads (no
+array of any store kind may hold them), in the same single pass.
 
 Examples
 --------
@@ -54,6 +56,7 @@ __all__ = [
     "has_checksums",
     "missing_chunks",
     "missing_problem",
+    "nonfinite_problem",
     "open_any_store",
     "rerun_hint",
     "store_kind",
@@ -172,7 +175,7 @@ class ChunkProblem:
         Store path and array path inside it.
     chunk : tuple of int
         Chunk index.
-    kind : {"corrupt", "truncated", "missing", "unreadable"}
+    kind : {"corrupt", "truncated", "missing", "unreadable", "nonfinite"}
     problem : str
         What is wrong, in words.
     hint : str
@@ -481,7 +484,43 @@ def _chunk_region(array: zarr.Array, coords: tuple[int, ...]) -> tuple[slice, ..
     return tuple(slice(c * s, min((c + 1) * s, n)) for c, s, n in zip(coords, array.chunks, array.shape))
 
 
-def verify_store(path: str | os.PathLike | zarr.Group) -> list[ChunkProblem]:
+def nonfinite_problem(store: str, array_name: str, chunk: tuple[int, ...], data: np.ndarray, start: Sequence[int],
+                      hint: str) -> ChunkProblem | None:
+    """The :class:`ChunkProblem` of a chunk of a float array that holds NaN or Inf (``None``: all finite).
+
+    Parameters
+    ----------
+    store, array_name : str
+        Store path and array path inside it.
+    chunk : tuple of int
+        Chunk index.
+    data : ndarray
+        The chunk's values.
+    start : sequence of int
+        Index of the chunk's first element in the array (the first bad value is named in array indices).
+    hint : str
+        What to do.
+
+    Returns
+    -------
+    ChunkProblem or None
+        Kind ``"nonfinite"``: the counts of NaN and Inf and the first one's index; ``None`` for a
+        chunk of finite values or of an integer array.
+    """
+    if data.dtype.kind not in "fc":
+        return None
+    nan, inf = np.isnan(data), np.isinf(data)
+    counts = [(int(nan.sum()), "NaN"), (int(inf.sum()), "Inf")]
+    if not any(n for n, _ in counts):
+        return None
+    first = np.unravel_index(int(np.argmax((nan | inf).reshape(-1))), data.shape)
+    at = ", ".join(str(int(s) + int(i)) for s, i in zip(start, first))
+    words = " and ".join(f"{n} {what}" for n, what in counts if n)
+    return ChunkProblem(store, array_name, chunk, "nonfinite",
+                        f"{words} value(s), first at {array_name}[{at}] (every value must be a finite number)", hint)
+
+
+def verify_store(path: str | os.PathLike | zarr.Group, *, finite: bool = False) -> list[ChunkProblem]:
     """Read every chunk of every array of a store and list the damaged ones.
 
     Memory is bounded by one chunk: chunks are read one by one.
@@ -490,13 +529,17 @@ def verify_store(path: str | os.PathLike | zarr.Group) -> list[ChunkProblem]:
     ----------
     path : str, path-like or zarr.Group
         Any store the pipeline writes (a ``btf build-db`` folder means its ``model.zarr``).
+    finite : bool
+        Also count the NaN and Inf values of every stored chunk of every float array
+        (:func:`nonfinite_problem`), in the same pass (``btf validate --deep``).
 
     Returns
     -------
     list of ChunkProblem
-        Corrupt (checksum mismatch), truncated and unreadable chunks, and chunks missing
-        although the store's ``written`` markers say they were written (:data:`WRITTEN_RULES`).
-        Empty when every chunk reads back as written.
+        Corrupt (checksum mismatch), truncated and unreadable chunks, chunks missing
+        although the store's ``written`` markers say they were written (:data:`WRITTEN_RULES`),
+        and with ``finite`` chunks holding NaN or Inf (kind ``"nonfinite"``), sorted by array
+        and chunk. Empty when every chunk reads back as written.
 
     Raises
     ------
@@ -525,14 +568,22 @@ def verify_store(path: str | os.PathLike | zarr.Group) -> list[ChunkProblem]:
                                          marker.shape) if marker.ndim else ()
                 problems.append(missing_problem(name, array_name, chunk, marker_name,
                                                 tuple(int(i) for i in index), hint))
+        floats = finite and _native_dtype(array.dtype).kind in "fc"     # integer frames hold no NaN
         for chunk in sorted(present):
+            region = _chunk_region(array, chunk)
             try:
-                array[_chunk_region(array, chunk)]
+                data = array[region]
             except CorruptChunkError as e:
                 problems.append(ChunkProblem(name, array_name, chunk, e.kind, e.problem, hint))
+                continue
             except Exception as e:  # noqa: BLE001 - e.g. the pipeline was not installed
                 problems.append(ChunkProblem(name, array_name, chunk, "unreadable",
                                              f"does not decode ({type(e).__name__}: {e})", hint))
+                continue
+            bad = nonfinite_problem(name, array_name, chunk, np.asarray(data), [r.start for r in region],
+                                    hint) if floats else None
+            if bad is not None:
+                problems.append(bad)
     problems.sort(key=lambda p: (p.array, p.chunk))
     return problems
 

@@ -34,6 +34,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import shutil
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
@@ -52,7 +53,15 @@ from btfcore.model.truncated_svd import truncated_svd
 from tasks.compute import run_all
 from tasks.faults import kill_point
 from tasks.integrity import create_array
-from tasks.staging import begin_store, finish_store
+from tasks.staging import (
+    begin_store,
+    commit_staged,
+    finish_interrupted_commit,
+    finish_store,
+    seed_staging,
+    staging_path,
+    store_attrs,
+)
 from tasks.stores import to_json_attr
 from tasks.stores.btf import SCHEMA_NAME as BTF_SCHEMA_NAME
 
@@ -305,10 +314,13 @@ def check_model_target(path: str | os.PathLike, materials: Sequence[Material]) -
     if attrs is None:
         return False
     if attrs.get("schema") != SCHEMA_NAME:
-        raise FileExistsError(f"{path} holds something other than a model store; choose another --out")
+        raise FileExistsError(f"{path} holds something other than a model store; choose another --out or pass "
+                              "--overwrite (the new store is then built beside it and replaces it once complete)")
     if attrs.get("rows_id") != materials[0].rows_id:
         raise FileExistsError(f"{path} holds a model store of another light/view sampling (rows_id "
-                              f"{attrs.get('rows_id')!r}, this database {materials[0].rows_id!r}); choose another --out")
+                              f"{attrs.get('rows_id')!r}, this database {materials[0].rows_id!r}); choose another "
+                              "--out or pass --overwrite (the new store is then built beside it and replaces it once "
+                              "complete)")
     return True
 
 
@@ -333,7 +345,8 @@ def read_class_map(path: str | os.PathLike | None) -> dict[str, str] | None:
 
 
 def open_model_store(path: str | os.PathLike, materials: Sequence[Material]) -> zarr.Group:
-    """Create the model store, or reopen it when its light/view sampling matches (then it is added to)."""
+    """Create the model store (``complete`` false until :func:`build_database` ends), or reopen it when its
+    light/view sampling matches (then it is added to)."""
     first = materials[0]
     src = zarr.open_group(first.path, mode="r", zarr_format=3)
     if check_model_target(path, materials):
@@ -343,8 +356,53 @@ def open_model_store(path: str | os.PathLike, materials: Sequence[Material]) -> 
         data = src[name][...]
         create_array(group, name, shape=data.shape, dtype=data.dtype, chunks=data.shape, compressors=None)[...] = data
     group.attrs.put(to_json_attr({"schema": SCHEMA_NAME, "schema_version": SCHEMA_VERSION, "rows_id": first.rows_id,
-                                  "n_lv": first.n_lv, "bases": list(BASES)}))
+                                  "n_lv": first.n_lv, "bases": list(BASES), "complete": False}))
     return finish_store(path, group)
+
+
+def model_target(path: str | os.PathLike, materials: Sequence[Material], overwrite: bool = False
+                 ) -> tuple[Path, bool]:
+    """The store a build of ``materials`` writes for ``path`` (``OUT/model.zarr``), and whether it is the
+    staging store of a replacement (put in place by :func:`tasks.staging.commit_staged` once complete).
+
+    An interrupted commit is finished first. A killed replacement's staging store (``model.partial.zarr``)
+    of this sampling resumes. A complete model store of this sampling is not changed in place: the build
+    works on a staging copy made of hard links to its files (:func:`tasks.staging.seed_staging`; its keyed
+    bases are reused), so that readers and a failed run never see a half-updated database. A new or
+    unfinished store (``complete`` false) is written in place. With ``overwrite``, a store of another
+    sampling or something else at ``path`` (or beside it, staged) is replaced by a new store built beside it.
+
+    Raises
+    ------
+    FileExistsError
+        ``path`` (or its staging store) holds something other than a model store of this sampling and not
+        ``overwrite``.
+    """
+    path = Path(path)
+    finish_interrupted_commit(path)
+    staging = staging_path(path)
+    if store_attrs(staging) is not None:
+        try:
+            check_model_target(staging, materials)
+            return staging, True
+        except FileExistsError:
+            if not overwrite:
+                raise
+            shutil.rmtree(staging)
+    attrs = store_attrs(path)
+    if attrs is None:
+        return path, False
+    try:
+        check_model_target(path, materials)
+    except FileExistsError:
+        if not overwrite:
+            raise
+        return staging, True                         # a new store beside what is there
+    if attrs.get("complete") is False:
+        return path, False
+    seed_staging(path)
+    zarr.open_group(str(staging), mode="r+", zarr_format=3).attrs["complete"] = False
+    return staging, True
 
 
 def write_basis(group: zarr.Group, where: str, model: TruncatedSVD, key: str, **attrs: Any) -> None:
@@ -646,18 +704,22 @@ def with_k(settings: ModelSettings, **k: int | None) -> ModelSettings:
 
 def build_database(db: str | os.PathLike, out_dir: str | os.PathLike, client: Any, *,
                    settings: ModelSettings = ModelSettings(), class_map: dict[str, str] | None = None,
-                   ks: Sequence[int] | None = None,
+                   ks: Sequence[int] | None = None, overwrite: bool = False,
                    progress: Callable[[str], Callable[[int, int], None] | None] | None = None) -> dict[str, Any]:
     """Fit, merge and evaluate the model database of ``db`` into ``out_dir/model.zarr``.
 
     Per-material bases run as one Dask task per material; the merges are
     small SVDs in this process; the leave-one-out evaluation is again one
     task per material. Returns the summary the report is made from.
+
+    An existing complete ``model.zarr`` is updated on a staging copy that replaces it once complete;
+    ``overwrite`` replaces one of another sampling (:func:`model_target`).
     """
     materials = discover(db, class_map)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    model_path = str(out / "model.zarr")
+    target, staged = model_target(out / "model.zarr", materials, overwrite)
+    model_path = str(target)
     group = open_model_store(model_path, materials)
     fits = run_all(client, fit_material, [(model_path, m, settings) for m in materials],
                    progress and progress("material bases"))
@@ -668,7 +730,10 @@ def build_database(db: str | os.PathLike, out_dir: str | os.PathLike, client: An
     ks = [k for k in (ks or (1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024, 2048)) if k <= k_max]
     group.attrs.update(to_json_attr({"materials": {m.material_id: {"class": m.cls, "btf": m.path,
                                                                    "ingest_hash": m.ingest_hash} for m in materials},
-                                     "settings": asdict(settings)}))
+                                     "settings": asdict(settings), "complete": True}))
+    if staged:
+        commit_staged(out / "model.zarr", "build-db")
+    model_path = str(out / "model.zarr")
     return {
         "model": model_path, "materials": [asdict(m) for m in materials],
         "fits": fits, "k": {basis: {name: model.k for name, model in d.items()} for basis, d in merged.items()},

@@ -31,7 +31,7 @@ from btfcore.acquisition.hadamard import is_s_matrix_order, s_matrix
 from btfcore.acquisition.plan import PLAN_SCHEMA, CapturePlan, ExposureModel, Shot, validate_plan
 from btfcore.dome import Device
 from btfcore.acquisition.time_model import TimeModelParams, predict_time
-from tasks.faults import kill_point
+from tasks.staging import write_file
 
 __all__ = ["CSV_COLUMNS", "plan_patterns", "plan_to_csv_text", "read_plan", "read_plan_json", "write_plan"]
 
@@ -109,19 +109,9 @@ def write_plan(plan: CapturePlan, path_json: str | Path, path_csv: str | Path | 
         doc["multiplexing_gain"] = float(multiplexing["gain"])
         doc["multiplexing_loses"] = bool(multiplexing["loses"])
         doc["multiplexing"] = dict(multiplexing)
-    path_json = Path(path_json)
-    path_json.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path_json.with_name(path_json.name + ".tmp")
-    kill_point("file-writing")
-    tmp.write_text(json.dumps(doc, indent=1))
-    kill_point("file-replace")
-    tmp.replace(path_json)
+    write_file(path_json, lambda tmp: tmp.write_text(json.dumps(doc, indent=1)))
     if path_csv is not None:
-        path_csv = Path(path_csv)
-        path_csv.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path_csv.with_name(path_csv.name + ".tmp")
-        tmp.write_text(plan_to_csv_text(plan))
-        tmp.replace(path_csv)
+        write_file(path_csv, lambda tmp: tmp.write_text(plan_to_csv_text(plan)))
     return doc
 
 

@@ -26,7 +26,7 @@ from btfcore.render.btf_render import (
     surface_geometry,
     to_srgb8,
 )
-from tasks.faults import kill_point
+from tasks.staging import write_file
 from tasks.stores.btf import open_btf_store
 
 __all__ = ["Rendering", "load_env_map", "read_btf_store", "render_store", "write_png"]
@@ -148,12 +148,11 @@ def write_png(path: str | os.PathLike, srgb: np.ndarray) -> Path:
     rgb = np.asarray(srgb)
     if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
         raise ValueError(f"srgb must be an (rows, cols, 3) uint8 image, got {rgb.dtype} {rgb.shape}")
-    tmp = p.with_name(f".{p.stem}.tmp{p.suffix}")          # never a half-written image at ``path``
-    kill_point("file-writing")
-    if not cv2.imwrite(str(tmp), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
-        raise OSError(f"OpenCV could not write {p}; check the folder and the .png suffix")
-    kill_point("file-replace")
-    os.replace(tmp, p)
+
+    def write(tmp: Path) -> None:
+        if not cv2.imwrite(str(tmp), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
+            raise OSError(f"OpenCV could not write {p}; check the folder and the .png suffix")
+    write_file(p, write)                                   # never a half-written image at ``path``
     return p
 
 

@@ -51,13 +51,19 @@ def reused_text(reused: dict[str, Sequence[int]]) -> str:
 RUN_PROFILE: dict[str, Any] = {}
 
 
-def write_json(path: str | Path, data: dict[str, Any]) -> Path:
-    """Write plain JSON (numpy values converted, NaN/Inf refused) atomically, with the run's
-    ``RUN_PROFILE`` as ``"profile"`` during a run."""
-    path = Path(path)
+def json_text(data: dict[str, Any]) -> str:
+    """Plain JSON of a report (numpy values converted, NaN/Inf refused), with the run's ``RUN_PROFILE`` as
+    ``"profile"`` during a run."""
     data = {**data, "profile": dict(RUN_PROFILE)} if RUN_PROFILE else data
+    return json.dumps(data, indent=2, default=_json_default, allow_nan=False)
+
+
+def write_json(path: str | Path, data: dict[str, Any]) -> Path:
+    """Write :func:`json_text` atomically (a temporary file, then a rename); no kill points, so that a
+    stage's reports do not shift the occurrences of its outputs' (:func:`tasks.staging.write_file`)."""
+    path = Path(path)
     tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2, default=_json_default, allow_nan=False))
+    tmp.write_text(json_text(data))
     tmp.replace(path)
     return path
 

@@ -21,7 +21,7 @@ import zarr
 
 from btfcore.acquisition.sampling import SAMPLING_METHODS, select_samples
 from btfcore.dome import Device
-from tasks.faults import kill_point
+from tasks.staging import write_file
 from tasks.model import SCHEMA_NAME, read_basis
 
 __all__ = [
@@ -290,12 +290,7 @@ def sample_model(model: str | os.PathLike, cls: str, basis: str = "log_y", n: in
 def write_samples(doc: dict[str, Any], path: str | os.PathLike) -> Path:
     """Write a ``btf-samples`` document atomically (a temporary file, then a rename)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    kill_point("file-writing")
-    tmp.write_text(json.dumps(doc, indent=1))
-    kill_point("file-replace")
-    tmp.replace(path)
+    write_file(path, lambda tmp: tmp.write_text(json.dumps(doc, indent=1)))
     return path
 
 

@@ -44,10 +44,14 @@ from btfcore.simulate.sensor import choose_bracket, dark_current_map, dark_frame
 from tasks.stores import (
     CaptureMetadata,
     CaptureStore,
+    capture_target,
     check_capture_target,
+    commit_capture,
     create_capture_store,
+    finished_capture,
     open_capture_store,
 )
+from tasks.report import write_json
 from tasks.textures import load_texture_sources
 
 ILLUMINATIONS = ("single", "multiplexed", "both")
@@ -547,9 +551,8 @@ def check_outputs(config: SimulationConfig, out_dir: str | Path, overwrite: bool
         return
     device = config.build_device()
     for spec in material_plan(config):
-        path = out_dir / f"{spec.material_id}.zarr"
-        if path.exists() and _finished_store(path, config, spec) is None:
-            check_capture_target(path, capture_metadata(config, spec, device), with_truth=True)
+        check_capture_target(out_dir / f"{spec.material_id}.zarr", capture_metadata(config, spec, device),
+                             with_truth=True)
 
 
 def simulate_database(config: SimulationConfig, out_dir: str | Path, client: Any, *,
@@ -577,43 +580,30 @@ def simulate_database(config: SimulationConfig, out_dir: str | Path, client: Any
     futures, stores, skipped, records = [], [], 0, []
     for spec in material_plan(config):
         path = out_dir / f"{spec.material_id}.zarr"
-        store = None if overwrite else _finished_store(path, config, spec)
-        if store is None:
+        target, fresh = capture_target(path, config_hash(config, spec), overwrite)
+        store = finished_capture(path, config_hash(config, spec)) if target == path and not fresh else None
+        if store is None:        # new, resumed, or (overwrite) built beside the old store until complete
             store = create_capture_store(path, capture_metadata(config, spec, device), with_truth=True,
                                          overwrite=overwrite)
             pending = store.pending_views()
-            prepared = client.submit(prepare_material, str(path), config, spec, pure=False,
-                                     key=f"prepare-{spec.material_id}-{time.time_ns()}")
+            if pending:
+                prepared = client.submit(prepare_material, store.path, config, spec, pure=False,
+                                         key=f"prepare-{spec.material_id}-{time.time_ns()}")
             for t, c in pending:
-                futures.append(client.submit(simulate_view, str(path), config, spec, t, c, prepared,
+                futures.append(client.submit(simulate_view, store.path, config, spec, t, c, prepared,
                                              pure=False))
             skipped += device.n_turn * device.n_cam - len(pending)
         else:
             skipped += device.n_turn * device.n_cam
-        stores.append(str(path))
+        stores.append((path, store.path))
         records.append({"material_id": spec.material_id, "class": spec.class_name, "seed": spec.seed,
                         "store": str(path)})
     total = len(futures)
     wait_all(futures, progress)  # re-raises a worker's error here, naming the view
-    for path in stores:
-        store = open_capture_store(path, mode="r+", require_complete=False)
-        if not store.group.attrs.get("complete", False):
-            store.mark_complete()
+    for path, written in stores:
+        commit_capture(open_capture_store(written, mode="r+", require_complete=False), path, "simulate")
     index = {"schema": "btf-database", "schema_version": "1.0", "simulation": config.to_json(),
              "materials": records}
-    (out_dir / "database.json").write_text(json.dumps(index, indent=2))
-    return SimulationResult(str(out_dir), stores, records, total, skipped, time.perf_counter() - start)
-
-
-def _finished_store(path: Path, config: SimulationConfig, spec: MaterialSpec) -> CaptureStore | None:
-    """A complete store of the same config at ``path``, else ``None``."""
-    if not path.exists():
-        return None
-    try:
-        store = open_capture_store(path, mode="r", require_complete=True)
-    except Exception:
-        return None
-    if store.group.attrs.get("provenance", {}).get("config_hash") != config_hash(config, spec):
-        return None
-    return store
-
+    write_json(out_dir / "database.json", index)
+    return SimulationResult(str(out_dir), [str(path) for path, _ in stores], records, total, skipped,
+                            time.perf_counter() - start)

@@ -15,11 +15,13 @@ from __future__ import annotations
 import os
 import shutil
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, TypeVar
 
 import zarr
 
 from tasks.faults import kill_point
+
+T = TypeVar("T")
 
 
 def staging_path(out: str | os.PathLike) -> Path:
@@ -152,6 +154,61 @@ def commit_staged(out: str | os.PathLike, command: str) -> Path:
     return out
 
 
+def temporary_file(path: str | os.PathLike) -> Path:
+    """Where :func:`write_file` writes ``path`` first: ``.STEM.tmp.SUFFIX`` beside it (hidden; the suffix kept
+    for writers that go by it, such as OpenCV and OpenEXR)."""
+    path = Path(path)
+    return path.with_name(f".{path.stem}.tmp{path.suffix}")
+
+
+def write_file(path: str | os.PathLike, write: Callable[[Path], T]) -> T:
+    """Put a single-file output at ``path`` whole or not at all, and return what ``write`` returns.
+
+    ``write(tmp)`` writes the file at :func:`temporary_file` beside ``path``, which is then renamed over
+    ``path`` (the folder is created). The kill points ``file-writing`` (the output computed, nothing
+    written) and ``file-replace`` (written beside ``path``, not yet renamed) sit between; a ``write``
+    that raises leaves no temporary file, and a finished file at ``path`` is only ever replaced whole.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = temporary_file(path)
+    try:
+        kill_point("file-writing")
+        result = write(tmp)
+        kill_point("file-replace")
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return result
+
+
+def seed_staging(out: str | os.PathLike) -> Path:
+    """Make the staging store of ``out`` a copy of ``out`` whose files are hard links to ``out``'s.
+
+    For a stage that updates a store rather than rebuilding it (``btf build-db`` adding materials to
+    its model store): the copy costs a link per file, and writing into it never changes ``out``,
+    because Zarr's local store writes every file whole to a temporary name and renames it over the
+    old one (a new inode; ``zarr.storage.LocalStore``) and deletes by unlinking. Where the file
+    system has no hard links, files are copied. The copy is built at the staging store's
+    :func:`creating_path` and renamed into place, so a kill leaves no half-made staging store.
+    """
+    out = Path(out)
+    staging = staging_path(out)
+    building = creating_path(staging)
+    shutil.rmtree(building, ignore_errors=True)
+
+    def link(src: str, dst: str) -> None:
+        try:
+            os.link(src, dst)
+        except OSError:
+            shutil.copy2(src, dst)
+
+    shutil.copytree(out, building, copy_function=link)
+    kill_point("store-creating")
+    os.rename(building, staging)
+    return staging
+
+
 # --------------------------------------------------------------------------
 # Outputs: never an input, in a place that can be written, never half-made
 # --------------------------------------------------------------------------
@@ -209,8 +266,9 @@ def check_output_location(path: str | os.PathLike, option: str = "--out") -> Non
     The nearest existing folder above ``path`` must be a writable directory: a regular
     file on the way (``out.zarr/x`` under a file ``out.zarr``), a read-only or
     permission-denied folder are named with the option and the path. An existing output
-    folder must hold no symbolic link (at its top level) to a place outside it, which the
-    run would write through (a crafted ``exr/lv00000....exr -> /elsewhere``).
+    folder must hold no symbolic link, at any depth, to a place outside it, which the run
+    would write through (a crafted ``exr/lv00000....exr -> /elsewhere``, or a chunk folder
+    ``out.zarr/btf/c -> /elsewhere`` that a resumed run would write into).
 
     Raises
     ------
@@ -229,16 +287,29 @@ def check_output_location(path: str | os.PathLike, option: str = "--out") -> Non
     if path.exists() and not path.is_dir() and not os.access(path, os.W_OK):
         raise PermissionError(f"{option} {path}: the file is not writable; choose another {option}")
     if path.is_dir():                   # a run writes inside its output only, never through a link out of it
-        root = path.resolve()
-        for entry in os.scandir(path):
-            target = Path(entry.path).resolve()
-            if entry.is_symlink() and target != root and root not in target.parents:
-                raise ValueError(f"{option} {path}: {entry.name} is a symbolic link to {target}, outside the "
-                                 f"output; a run writes only inside its output: remove the link or choose another "
-                                 f"{option}")
+        link = _link_out_of(path)
+        if link is not None:
+            name, target = link
+            raise ValueError(f"{option} {path}: {name} is a symbolic link to {target}, outside the "
+                             f"output; a run writes only inside its output: remove the link or choose another "
+                             f"{option}")
     if not os.access(parent, os.W_OK | os.X_OK):
         raise PermissionError(f"{option} {path}: the folder {parent} is not writable (permissions or a read-only "
                               f"file system); choose another {option}")
+
+
+def _link_out_of(folder: Path) -> tuple[str, Path] | None:
+    """The first symbolic link at any depth below ``folder`` (its path relative to it) that resolves outside
+    ``folder``, with its target; links are not followed. One directory listing per folder of the output."""
+    root = folder.resolve()
+    for parent, dirs, files in os.walk(folder):
+        for name in sorted(dirs + files):
+            entry = Path(parent, name)
+            if entry.is_symlink():
+                target = entry.resolve()
+                if target != root and root not in target.parents:
+                    return str(entry.relative_to(folder)), target
+    return None
 
 
 def _is_url(path: str | os.PathLike) -> bool:

@@ -32,7 +32,7 @@ from btfcore.superres.regions import UPSAMPLE_METHODS, rectify_regions, scale_ho
 from btfcore.superres.scaling import area_downsample
 from tasks.compute import run_all
 from tasks.faults import kill_point
-from tasks.staging import commit_staged, staged_target, staging_path, store_attrs, trash_path
+from tasks.staging import commit_staged, staged_target, staging_path, store_attrs, trash_path, write_file
 from tasks.stores.btf import (
     LV_ORDER,
     SCHEMA_NAME,
@@ -106,11 +106,7 @@ def save_model(path: str | os.PathLike, state: dict[str, Any], config: Any, prov
     payload = {"format": MODEL_FORMAT, "format_version": MODEL_FORMAT_VERSION,
                "config": json.dumps(config.to_json()), "provenance": json.dumps(provenance, default=str),
                "state_dict": state, "sha256": _digest(state)}
-    tmp = path.with_name(f".{path.name}.tmp")
-    kill_point("file-writing")
-    torch.save(payload, tmp)
-    kill_point("file-replace")
-    os.replace(tmp, path)                                  # never a half-written model at ``path``
+    write_file(path, lambda tmp: torch.save(payload, tmp))   # never a half-written model at ``path``
     return path
 
 

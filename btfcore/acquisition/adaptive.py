@@ -42,7 +42,7 @@ truth is never seen here except through an optional callback that scores a recon
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -124,6 +124,7 @@ class AdaptiveResult:
     rows: np.ndarray
     coefficients: np.ndarray            # (k, n_tx, 3) basis coefficients C = Sigma D of linear RGB
     settings: dict[str, Any] = field(default_factory=dict)
+    replayed: int = 0                   # the first steps whose group was given (``replay``), not chosen
 
     def to_dict(self) -> dict[str, Any]:
         return {"stopped": self.stopped, "n_shots": int(len(self.groups)), "groups": self.groups.tolist(),
@@ -377,7 +378,8 @@ def run_adaptive(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, noise: Se
                  target: float, budget: int, lam: float = LAMBDA_ALS, n_start: int | None = None,
                  predictor: str = "posterior", seed: int = 0, weighting: str = "relative",
                  score: Callable[[np.ndarray], float] | None = None,
-                 on_step: Callable[[Step, np.ndarray], None] | None = None) -> AdaptiveResult:
+                 on_step: Callable[[Step, np.ndarray], None] | None = None,
+                 replay: Sequence[int] = ()) -> AdaptiveResult:
     """The closed loop: choose a group, measure it, update, predict, until target or budget.
 
     Parameters
@@ -407,6 +409,11 @@ def run_adaptive(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, noise: Se
         ``score(C) -> true error`` of the coefficients ``C`` (k, n_tx, 3); simulated data only.
     on_step : callable, optional
         ``on_step(step, coefficients)`` after every step (plans, reports).
+    replay : sequence of int, optional
+        Groups of the first steps, taken as given instead of chosen (neither the start design nor the
+        gains are computed for them): the groups a killed run recorded. Each is measured and added
+        as in the run that chose it, so with the same inputs and a deterministic ``measure`` the state,
+        the steps and every later choice equal an uninterrupted run's (``tasks.adaptive``'s resume).
 
     Returns
     -------
@@ -419,13 +426,16 @@ def run_adaptive(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, noise: Se
     if budget < 1:
         raise ValueError(f"the shot budget must be >= 1, got {budget}")
     n0 = min(budget, n_start if n_start is not None else int(np.ceil(2 * state.k / geometry.n_cam)))
-    first = start_groups(U, sigma, geometry, n0, lam)
+    replay = [int(g) for g in replay]
+    first = start_groups(U, sigma, geometry, n0, lam) if len(replay) < n0 else []
     steps: list[Step] = []
     stopped = "budget"
     model = None
     while len(state.groups) < budget:
         t0 = time.process_time()
-        if len(state.groups) < n0:
+        if len(state.groups) < len(replay):
+            group = replay[len(state.groups)]
+        elif len(state.groups) < n0:
             group = first[len(state.groups)]
         else:
             group = int(np.argmax(state.gains(model)))
@@ -447,7 +457,10 @@ def run_adaptive(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, noise: Se
         if len(state.groups) >= n0 and pred[predictor] <= target:
             stopped = "target"
             break
+    if len(replay) > len(steps):
+        raise ValueError(f"{len(replay)} groups to replay, but the loop stopped ({stopped}) after {len(steps)} "
+                         "steps: the groups were not recorded by a run of these inputs")
     return AdaptiveResult(steps, stopped, np.asarray(state.groups, dtype=np.int64), state.rows.copy(),
                           state.coefficients(), {"target": target, "budget": budget, "lam": lam, "n_start": n0,
                                                  "predictor": predictor, "weighting": weighting, "k": state.k,
-                                                 "n_cam": geometry.n_cam})
+                                                 "n_cam": geometry.n_cam}, replayed=len(replay))

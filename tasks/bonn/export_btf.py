@@ -35,7 +35,7 @@ import numpy as np
 from btfcore.bonn import COLOUR_MODELS, UnknownColourModelError, decode_colour, decode_textures, encode_colour, \
     factorise
 from tasks.bonn.header import CommonHeader, make_header, sph_to_dir
-from tasks.faults import kill_point
+from tasks.staging import write_file
 from tasks.stores.btf import LV_ORDER, RESAMPLED_LV_ORDER, BtfStore, open_btf_store
 
 __all__ = [
@@ -410,18 +410,8 @@ def export_store(store_path: str | os.PathLike, out_file: str | os.PathLike, *, 
                         components=components, compression=compression, overwrite=overwrite,
                         lines_per_chunk=lines_per_chunk, scale=scale, basis=basis, basis_class=basis_class,
                         max_bytes=max_bytes)
-    partial = plan.out.with_name(plan.out.name + ".partial")
-    try:
-        kill_point("file-writing")
-        if plan.format == "bdi":
-            header, summary = _write_bdi(plan, partial, lines_per_chunk)
-        else:
-            header, summary = _write_factorised(plan, partial)
-        kill_point("file-replace")
-        os.replace(partial, plan.out)
-    finally:
-        if partial.exists():
-            partial.unlink()
+    header, summary = write_file(plan.out, lambda tmp: _write_bdi(plan, tmp, lines_per_chunk)
+                                 if plan.format == "bdi" else _write_factorised(plan, tmp))
     h, w = plan.store.texture_shape
     return {"command": "export", "out": str(plan.out.resolve()), "format": plan.format,
             "signature": header.signature, "bytes": plan.out.stat().st_size, "source": str(store_path),

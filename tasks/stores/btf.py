@@ -34,7 +34,7 @@ import zarr
 
 from tasks.integrity import CorruptChunkError, create_array
 from tasks.staging import begin_store, finish_store
-from tasks.stores.common import ROOT_ATTRS, WHOLE_STORE, Problem, is_url, store_arg, to_json_attr
+from tasks.stores.common import ROOT_ATTRS, WHOLE_STORE, Problem, is_url, root_attr_problems, store_arg, to_json_attr
 
 __all__ = [
     "ARRAYS",
@@ -454,12 +454,7 @@ def validate_btf_store(path: str | os.PathLike, *, require_complete: bool = True
 def _attr_problems(attrs: Mapping[str, Any]) -> list[Problem]:
     """Root attributes: present, of the schema's version, ``texture_shape`` and ``lv_order`` well-formed."""
     rewrite = f"write the store again with {PRODUCERS}"
-    problems = [Problem(ROOT_ATTRS, key, f"attribute {key!r}", "nothing", f"the store is incomplete; {rewrite}")
-                for key in REQUIRED_ATTRS if key not in attrs]
-    if "schema_version" in attrs and attrs["schema_version"] != SCHEMA_VERSION:
-        problems.append(Problem(ROOT_ATTRS, "schema_version", repr(SCHEMA_VERSION), repr(attrs["schema_version"]),
-                                f"this code reads {SCHEMA_NAME} {SCHEMA_VERSION}; use the btf-pipeline version "
-                                "that wrote the store or write it again"))
+    problems = root_attr_problems(attrs, REQUIRED_ATTRS, SCHEMA_NAME, SCHEMA_VERSION, rewrite)
     if not any(attrs.get(key) for key in CONTENT_KEYS):
         problems.append(Problem(ROOT_ATTRS, "ingest_hash", f"one of {list(CONTENT_KEYS)}", "none",
                                 f"the writing stage records what the store holds; {rewrite}"))

@@ -9,15 +9,15 @@ calibration, dark frames, resume markers and, for simulated captures, the exact 
 - :mod:`tasks.stores.capture_validate`: every check, all problems listed at once;
 - :mod:`tasks.stores.capture_store`: :class:`CaptureStore`, reading and whole-chunk writing;
 - this module: :func:`create_capture_store` (validates the metadata first, resumes an unfinished
-  store of the same configuration), :func:`check_capture_target` and :func:`open_capture_store`.
+  store of the same configuration, builds an ``overwrite`` beside the old store),
+  :func:`commit_capture`, :func:`check_capture_target` and :func:`open_capture_store`.
 
 Examples
 --------
 >>> store = create_capture_store("cap.zarr", meta)            # doctest: +SKIP
 >>> for t, c in store.pending_views():                        # doctest: +SKIP
 ...     store.write_bracket(t, c, frames, exposure_time)
->>> store.mark_complete()                                     # doctest: +SKIP
->>> store = open_capture_store("cap.zarr")                    # doctest: +SKIP
+>>> store = commit_capture(store, "cap.zarr", "simulate")     # doctest: +SKIP
 """
 
 from __future__ import annotations
@@ -33,7 +33,16 @@ import zarr
 
 import btfcore
 from tasks.integrity import create_array
-from tasks.staging import begin_store, finish_store
+from pathlib import Path
+
+from tasks.staging import (
+    begin_store,
+    commit_staged,
+    finish_interrupted_commit,
+    finish_store,
+    staging_path,
+    store_attrs,
+)
 from tasks.stores.capture_store import CaptureStore
 from tasks.stores.capture_schema import (  # noqa: F401 - the schema's names are the capture store's
     ARRAYS,
@@ -71,8 +80,11 @@ __all__ = [
     "CaptureMetadata",
     "CaptureStore",
     "CaptureStoreError",
+    "capture_target",
     "check_capture_target",
+    "commit_capture",
     "create_capture_store",
+    "finished_capture",
     "open_capture_store",
     "validate_capture_store",
 ]
@@ -186,12 +198,15 @@ def create_capture_store(
     with_truth : bool
         Create the ``truth/`` group (simulator only).
     overwrite : bool
-        Delete whatever is at ``path`` first.
+        Replace whatever is at ``path``: the new store is built beside it at
+        :func:`tasks.staging.staging_path` (``X.partial.zarr``) and :func:`commit_capture` puts it
+        in place once it is complete, so that a failed run leaves the old store whole.
 
     Returns
     -------
     CaptureStore
-        Opened with mode ``"r+"``.
+        Opened with mode ``"r+"``; its ``path`` is the staging store when it replaces one
+        (:func:`capture_target`).
 
     Raises
     ------
@@ -206,16 +221,21 @@ def create_capture_store(
     -----
     An incomplete store at ``path`` with the same ``config_hash`` and the
     same metadata is reopened as is: finished views are kept and
-    :meth:`CaptureStore.pending_views` lists the rest.
+    :meth:`CaptureStore.pending_views` lists the rest. So is the staging store of a killed
+    ``overwrite`` of the same configuration, with or without ``overwrite``.
     """
     problems, attrs, arrays = _meta_problems(meta)
     if problems:
         raise CaptureStoreError(path, problems)
     assert attrs is not None
-    if not overwrite:
-        existing = _existing_store(path, meta, attrs, with_truth)
+    target, fresh = capture_target(path, attrs["provenance"]["config_hash"], overwrite)
+    if not fresh:
+        if target != path and store_attrs(target).get("complete"):
+            return CaptureStore(target, "r+")           # a replacement killed before its commit
+        existing = _existing_store(target, meta, attrs, with_truth)
         if existing is not None:
             return existing
+    path = target
     group = begin_store(path)
     _create_arrays(group, meta, arrays, with_truth)
     if meta.plan_shot is not None:
@@ -229,19 +249,74 @@ def create_capture_store(
 
 
 def check_capture_target(path: str | os.PathLike, meta: CaptureMetadata, *, with_truth: bool = False) -> None:
-    """Raise what :func:`create_capture_store` (without ``overwrite``) would refuse at ``path``, writing nothing.
+    """Raise what a run writing ``meta``'s capture to ``path`` (without ``overwrite``) refuses, writing nothing.
+
+    A complete store of the same configuration is finished work (:func:`finished_capture`), and the
+    staging store of a killed ``overwrite`` of it resumes: neither is refused.
 
     Raises
     ------
     CaptureStoreError
         ``meta`` violates the schema.
     FileExistsError
-        ``path`` holds a complete store, one of another config, or something else.
+        ``path`` holds a store of another config, an unfinished one of other metadata, or something else.
     """
     problems, attrs, _ = _meta_problems(meta)
     if problems:
         raise CaptureStoreError(path, problems)
-    _existing_store(path, meta, attrs, with_truth)
+    key = attrs["provenance"]["config_hash"]
+    if not _staged_replacement(path, key) and finished_capture(path, key) is None:
+        _existing_store(path, meta, attrs, with_truth)
+
+
+def finished_capture(path: str | os.PathLike, key: str) -> CaptureStore | None:
+    """The complete capture store of config ``key`` at ``path`` (opened read-only), else ``None``."""
+    if not is_url(path) and not os.path.exists(path):
+        return None
+    try:
+        store = open_capture_store(path, mode="r", require_complete=True)
+    except Exception:  # noqa: BLE001 - anything else at path is for the caller's checks to name
+        return None
+    return store if (store.attrs.get("provenance") or {}).get("config_hash") == key else None
+
+
+def _staged_replacement(path: str | os.PathLike, key: str) -> bool:
+    """Whether the staging store beside ``path`` holds a capture of config ``key`` (a killed ``overwrite``)."""
+    if is_url(path):
+        return False
+    return ((store_attrs(staging_path(path)) or {}).get("provenance") or {}).get("config_hash") == key
+
+
+def capture_target(path: str | os.PathLike, key: str, overwrite: bool) -> tuple[str | os.PathLike, bool]:
+    """Where a capture of config ``key`` for ``path`` is written, and whether it is built afresh.
+
+    An interrupted commit into ``path`` is finished first (:func:`tasks.staging.finish_interrupted_commit`).
+    Then the staging store beside ``path`` when it holds this config (a killed ``overwrite`` resumes, with or
+    without ``overwrite``), or when ``overwrite`` replaces a store at ``path`` (built afresh there); else
+    ``path`` itself (afresh only with ``overwrite``: nothing is there to keep). A URL store is written in place.
+    """
+    if is_url(path):
+        return path, overwrite
+    finish_interrupted_commit(path)
+    staging = staging_path(path)
+    if _staged_replacement(path, key):
+        return staging, False
+    if overwrite and store_attrs(path) is not None and not (os.path.isdir(path) and not os.listdir(path)):
+        return staging, True
+    return path, overwrite
+
+
+def commit_capture(store: CaptureStore, path: str | os.PathLike, command: str) -> CaptureStore:
+    """Mark the written ``store`` complete and, when it is the staging store of ``path``, put it in place.
+
+    ``command`` (``"simulate"``, ``"import-raw"``) names the run in the messages of
+    :func:`tasks.staging.commit_staged`. Returns the complete store at ``path``, opened read-only.
+    """
+    if not store.complete:
+        store.mark_complete()
+    if not is_url(path) and Path(store.path) != Path(path):
+        commit_staged(path, command)
+    return open_capture_store(path)
 
 
 def _existing_store(path, meta: CaptureMetadata, attrs: dict, with_truth: bool) -> CaptureStore | None:

@@ -17,6 +17,8 @@ from typing import Any
 import numpy as np
 import zarr
 
+from tasks.integrity import CorruptChunkError
+
 #: How many offending indices a problem lists before summarising.
 MAX_LISTED = 10
 #: ``Problem.array`` of a problem with the store as a whole (missing, unreadable).
@@ -232,3 +234,25 @@ def write_chunk_aligned(array: zarr.Array, selection: Any, data: np.ndarray) -> 
             raise ValueError(
                 f"data of shape {data.shape} does not fit the block of shape {natural}") from e
     array[sel] = data
+
+
+def read_whole(name: str, array: zarr.Array, problems: list[Problem]) -> np.ndarray | None:
+    """A small array, read whole; a chunk that does not read back is a problem (``None``)."""
+    try:
+        return np.asarray(array[...])
+    except CorruptChunkError as e:
+        problems.append(Problem(name, f"chunk {e.chunk}", "a chunk that reads back as written", e.problem, e.hint))
+        return None
+
+
+def root_attr_problems(attrs: Mapping[str, Any], required: Sequence[str], schema: str, version: str,
+                       rewrite: str) -> list[Problem]:
+    """The root attributes of ``required`` that a store lacks, and a ``schema_version`` other than ``version``
+    (``rewrite``: how to write the store again, e.g. ``"write the store again with `btf ingest`"``)."""
+    problems = [Problem(ROOT_ATTRS, key, f"attribute {key!r}", "nothing", f"the store is incomplete; {rewrite}")
+                for key in required if key not in attrs]
+    if "schema_version" in attrs and attrs["schema_version"] != version:
+        problems.append(Problem(ROOT_ATTRS, "schema_version", repr(version), repr(attrs["schema_version"]),
+                                f"this code reads {schema} {version}; use the btf-pipeline version that wrote the "
+                                "store or write it again"))
+    return problems

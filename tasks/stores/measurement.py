@@ -1,5 +1,5 @@
 """The measurement store (schema ``btf-measurement`` 1.0, docs/measurement-store.md): created,
-opened and read here.
+opened, validated (:func:`validate_measurement_store`, ``btf validate``) and read here.
 
 What ``btf ingest`` writes for a plan capture that does not separate every LED at every view
 (:func:`tasks.measurement.needs_measurement_store`): the rectified HDR textures of the brackets
@@ -36,31 +36,62 @@ import numpy as np
 import zarr
 
 from btfcore.capture.view_chain import IngestSettings, lv_directions
-from tasks.integrity import create_array
+from tasks.integrity import CorruptChunkError, create_array, open_any_store
 from tasks.staging import begin_store, finish_store, staged_target, staging_path
-from tasks.stores.btf import band_rows
+from tasks.stores.btf import UNIT_TOL, band_rows
 from tasks.stores.capture import CaptureStore
-from tasks.stores.common import to_json_attr
+from tasks.stores.common import (
+    ROOT_ATTRS,
+    WHOLE_STORE,
+    Problem,
+    listing,
+    read_whole,
+    root_attr_problems,
+    to_json_attr,
+)
 
 if TYPE_CHECKING:
     from scipy import sparse
 
 __all__ = [
+    "ARRAYS",
+    "CAPTURE_ARRAYS",
+    "REQUIRED_ATTRS",
     "SCHEMA_NAME",
     "SCHEMA_VERSION",
     "block_rows",
     "create_measurement_store",
+    "g_rows",
     "measurement_hash",
     "measurement_layout",
     "measurement_target",
     "open_measurement_store",
     "plan_summary",
     "read_G",
+    "validate_measurement_store",
     "write_measurement",
 ]
 
 SCHEMA_NAME = "btf-measurement"
 SCHEMA_VERSION = "1.0"
+#: Root attributes of every measurement store (both writers).
+REQUIRED_ATTRS = ("schema", "schema_version", "units", "lv_order", "texture_shape", "turntable_cameras_leds",
+                  "n_meas", "rows_per_block", "single_light", "ingest_hash", "complete")
+#: Arrays of every measurement store: name -> (dtype, or ``"float"``/``"int"`` for any of that kind; shape by
+#: the sizes of the attributes: ``n_lv = n_turn * n_cam * n_leds`` of ``turntable_cameras_leds``).
+ARRAYS: dict[str, tuple[str, tuple[str | int, ...]]] = {
+    "measured": ("float32", ("n_meas", "h", "w", 3)), "G": ("float32", ("n_meas", "n_lv")),
+    "light_dir": ("float", ("n_lv", 3)), "view_dir": ("float", ("n_lv", 3)), "lv_index": ("int", ("n_lv", 3))}
+#: The further arrays of a store that ``btf ingest`` wrote from a plan capture (attribute ``meas_order``);
+#: ``n_illum`` is the number of patterns, ``n_blocks`` that of blocks of ``rows_per_block`` rows.
+CAPTURE_ARRAYS: dict[str, tuple[str, tuple[str | int, ...]]] = {
+    "meas_index": ("int", ("n_meas", 3)), "shot": ("int", ("n_meas",)),
+    "illumination": ("uint8", ("n_illum", "n_leds")),
+    "valid_fraction_rows": ("float64", ("n_meas",)), "valid_fraction": ("float64", ("n_turn", "n_cam", "n_illum")),
+    "written": ("uint8", ("n_blocks",))}
+#: What to do about a store that does not hold what the schema says.
+_REWRITE = ("write the store again (`btf ingest CAPTURE --out STORE --overwrite` of the plan capture, or "
+            "tasks.stores.measurement.write_measurement)")
 
 
 def plan_summary(plan: dict[str, Any] | None) -> dict[str, Any] | None:
@@ -85,12 +116,32 @@ def measurement_layout(capture: CaptureStore) -> tuple[np.ndarray, np.ndarray]:
         (light superposes) at its view.
     """
     meas_index = np.argwhere(capture.planned).astype(np.int32)
-    n_cam, n_leds = capture.n_cam, capture.n_leds
-    G = np.zeros((len(meas_index), capture.n_lv), dtype=np.float32)
+    return meas_index, g_rows(meas_index, capture.illumination, capture.n_cam, capture.n_leds, capture.n_lv)
+
+
+def g_rows(meas_index: np.ndarray, illumination: np.ndarray, n_cam: int, n_leds: int, n_lv: int) -> np.ndarray:
+    """The rows of ``G`` of some brackets: each measured texture is the sum of the single-LED textures of
+    its pattern at its view (light superposes).
+
+    Parameters
+    ----------
+    meas_index : (rows, 3) ndarray of int
+        ``(t, c, i)`` of each bracket.
+    illumination : (n_illum, n_leds) ndarray
+        The capture's patterns.
+    n_cam, n_leds, n_lv : int
+        Cameras and LEDs of the dome, full rows ``n_turn * n_cam * n_leds``.
+
+    Returns
+    -------
+    (rows, n_lv) ndarray of float32
+        ``G[r, (t * n_cam + c) * n_leds + l] = illumination[i, l]`` for ``meas_index[r] = (t, c, i)``.
+    """
+    G = np.zeros((len(meas_index), n_lv), dtype=np.float32)
     view = meas_index[:, 0] * n_cam + meas_index[:, 1]
     cols = view[:, None] * n_leds + np.arange(n_leds)[None, :]
-    G[np.arange(len(meas_index))[:, None], cols] = capture.illumination[meas_index[:, 2]]
-    return meas_index, G
+    G[np.arange(len(meas_index))[:, None], cols] = illumination[meas_index[:, 2]]
+    return G
 
 
 def block_rows(meas_index: np.ndarray) -> int:
@@ -260,6 +311,192 @@ def open_measurement_store(path: str | os.PathLike) -> zarr.Group:
     if not attrs.get("complete"):
         raise ValueError(f"{path}: the measurement ingest is unfinished (complete = false); run `btf ingest` again")
     return group
+
+
+def validate_measurement_store(path: str | os.PathLike, require_complete: bool = True) -> list[Problem]:
+    """Check a measurement store against the schema and list every problem (``btf validate``).
+
+    Checks the root attributes (:data:`REQUIRED_ATTRS`, the schema version, the sizes they give), the
+    arrays' presence, dtypes and shapes against those sizes and each other (:data:`ARRAYS`, and
+    :data:`CAPTURE_ARRAYS` for a store ingested from a capture), the chunking by ``rows_per_block``,
+    the directions (finite unit vectors), ``lv_index`` (row-major over ``turntable_cameras_leds``),
+    ``meas_index`` (planned brackets in row-major order, inside the dome), the patterns (0 or 1),
+    ``valid_fraction_rows`` (in [0, 1]), the markers (0 or 1, all set in a complete store) and ``G``:
+    read block of rows by block, every row the pattern of its bracket at its view (a store ingested
+    from a capture) and ``single_light`` as ``G`` says. ``measured`` is never read: its NaN/Inf
+    values are found by ``btf validate --deep`` (:func:`tasks.integrity.verify_store`).
+
+    Parameters
+    ----------
+    path : str or path-like
+        Store directory or fsspec URL.
+    require_complete : bool
+        Report an unfinished store (``complete`` false) as a problem.
+
+    Returns
+    -------
+    list of Problem
+        Empty when the store is valid; each names the array (or attribute) and the index. Content
+        problems never raise.
+    """
+    try:
+        group, _ = open_any_store(path)
+    except (FileNotFoundError, ValueError) as e:
+        return [Problem(WHOLE_STORE, None, "a measurement store (a Zarr v3 group)", str(e),
+                        "check the path; give the `btf ingest` output of a plan capture")]
+    attrs = dict(group.attrs)
+    if attrs.get("schema") != SCHEMA_NAME:
+        return [Problem(ROOT_ATTRS, "schema", repr(SCHEMA_NAME), repr(attrs.get("schema")),
+                        "this is not a measurement store; give the `btf ingest` output of a plan capture")]
+    problems = root_attr_problems(attrs, REQUIRED_ATTRS, SCHEMA_NAME, SCHEMA_VERSION, _REWRITE)
+    dims = _attr_sizes(attrs, problems)
+    arrays = _checked_arrays(group, {**ARRAYS, **(CAPTURE_ARRAYS if "meas_order" in attrs else {})}, dims, problems)
+    data = {name: read_whole(name, arrays[name], problems) for name in arrays if name not in ("measured", "G")}
+    _content_problems(attrs, dims, data, problems)
+    if "G" in arrays:
+        _g_problems(arrays["G"], attrs, dims, data, problems)
+    if require_complete and attrs.get("complete") is False:
+        problems.append(Problem(ROOT_ATTRS, "complete", "true", "false",
+                                "the ingest is unfinished; run `btf ingest` again with the same --out to resume"))
+    return problems
+
+
+def _attr_sizes(attrs: dict[str, Any], problems: list[Problem]) -> dict[str, int]:
+    """The sizes the attributes give (``n_meas``, ``h``, ``w``, ``n_turn``, ``n_cam``, ``n_leds``, ``n_lv``,
+    ``rows``, ``n_blocks``); a malformed attribute is a problem and its sizes are left out."""
+    sizes: dict[str, int] = {}
+    for key, names in (("texture_shape", ("h", "w")), ("turntable_cameras_leds", ("n_turn", "n_cam", "n_leds")),
+                       ("n_meas", ("n_meas",)), ("rows_per_block", ("rows",))):
+        if key not in attrs:
+            continue
+        value = attrs[key]
+        values = value if isinstance(value, list) else [value]
+        if len(values) == len(names) and all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in values):
+            sizes.update(zip(names, values))
+        else:
+            words = f"[{', '.join(names)}], positive integers" if len(names) > 1 else "a positive integer"
+            problems.append(Problem(ROOT_ATTRS, key, words, repr(value), _REWRITE))
+    if all(k in sizes for k in ("n_turn", "n_cam", "n_leds")):
+        sizes["n_lv"] = sizes["n_turn"] * sizes["n_cam"] * sizes["n_leds"]
+    if "rows" in sizes and "n_meas" in sizes:
+        sizes["n_blocks"] = -(-sizes["n_meas"] // sizes["rows"])
+    if "lv_order" in attrs and attrs["lv_order"] != ["turntable", "camera", "light"]:
+        problems.append(Problem(ROOT_ATTRS, "lv_order", repr(["turntable", "camera", "light"]),
+                                repr(attrs["lv_order"]), _REWRITE))
+    for key in ("single_light", "complete"):
+        if key in attrs and not isinstance(attrs[key], bool):
+            problems.append(Problem(ROOT_ATTRS, key, "true or false", repr(attrs[key]), _REWRITE))
+    return sizes
+
+
+def _checked_arrays(group: zarr.Group, schema: dict[str, tuple[str, tuple[str | int, ...]]], sizes: dict[str, int],
+                    problems: list[Problem]) -> dict[str, zarr.Array]:
+    """The arrays of ``schema`` that are there with their dtype and shape (the others are problems);
+    ``n_illum`` is taken from ``illumination``."""
+    found: dict[str, zarr.Array] = {}
+    for name, (dtype, shape) in schema.items():
+        node = group.get(name)
+        if not isinstance(node, zarr.Array):
+            problems.append(Problem(name, None, f"array {name!r}, {dtype} of shape ({', '.join(map(str, shape))})",
+                                    "nothing" if node is None else "a group", f"the store is incomplete; {_REWRITE}"))
+            continue
+        kind = np.dtype(node.dtype).kind
+        if not ((dtype == "float" and kind == "f") or (dtype == "int" and kind in "iu") or str(node.dtype) == dtype):
+            problems.append(Problem(name, None, f"dtype {dtype}", f"dtype {node.dtype}", _REWRITE))
+            continue
+        if name == "illumination" and node.ndim == 2:
+            sizes["n_illum"] = int(node.shape[0])
+        want = tuple(sizes.get(s) if isinstance(s, str) else s for s in shape)
+        if node.ndim != len(shape):
+            problems.append(Problem(name, None, f"{len(shape)} axes ({', '.join(map(str, shape))})",
+                                    f"shape {node.shape}", _REWRITE))
+            continue
+        bad = [a for a, n in enumerate(want) if n is not None and node.shape[a] != n]
+        if bad:
+            a = bad[0]
+            problems.append(Problem(name, f"axis {a} ({shape[a]})", f"length {want[a]} (shape "
+                                    f"({', '.join(str(n if n is not None else s) for n, s in zip(want, shape))}))",
+                                    f"length {node.shape[a]} (shape {node.shape})", _REWRITE))
+            continue
+        if name in ("measured", "G", "valid_fraction_rows") and "rows" in sizes and node.chunks[0] != sizes["rows"]:
+            problems.append(Problem(name, "chunks axis 0", f"{sizes['rows']} rows a chunk (rows_per_block: a block "
+                                    "of rows owns whole chunks)", f"{node.chunks[0]}", _REWRITE))
+        found[name] = node
+    return found
+
+
+def _content_problems(attrs: dict[str, Any], sizes: dict[str, int], data: dict[str, np.ndarray | None],
+                      problems: list[Problem]) -> None:
+    """Values of the small arrays: directions, ``lv_index``, ``meas_index``, patterns, fractions, markers."""
+    for name in ("light_dir", "view_dir"):
+        d = data.get(name)
+        if d is not None:
+            norm = np.linalg.norm(d, axis=1)
+            bad = np.flatnonzero(~np.isfinite(norm) | (np.abs(norm - 1) > UNIT_TOL))
+            if len(bad):
+                problems.append(Problem(name, f"lv {listing(bad[:, None])}", "finite unit vectors in the sample frame",
+                                        f"{len(bad)} other row(s)", _REWRITE))
+    index = data.get("lv_index")
+    if index is not None and "n_lv" in sizes:
+        want = np.indices((sizes["n_turn"], sizes["n_cam"], sizes["n_leds"])).reshape(3, -1).T
+        bad = np.flatnonzero((index != want).any(axis=1))
+        if len(bad):
+            problems.append(Problem("lv_index", f"lv {listing(bad[:, None])}", "(turntable, camera, light) of each "
+                                    "row, row-major over turntable_cameras_leds", f"{len(bad)} other row(s)", _REWRITE))
+    meas = data.get("meas_index")
+    if meas is not None and all(k in sizes for k in ("n_turn", "n_cam", "n_illum")):
+        inside = np.all((meas >= 0) & (meas < [sizes["n_turn"], sizes["n_cam"], sizes["n_illum"]]), axis=1)
+        order = np.ravel_multi_index(tuple(np.where(inside[:, None], meas, 0).T),
+                                     (sizes["n_turn"], sizes["n_cam"], sizes["n_illum"]))
+        bad = np.flatnonzero(~inside | np.r_[False, np.diff(order) <= 0])
+        if len(bad):
+            problems.append(Problem("meas_index", f"row {listing(bad[:, None])}", "planned brackets (t, c, i) inside "
+                                    f"[0, {sizes['n_turn']}) x [0, {sizes['n_cam']}) x [0, {sizes['n_illum']}), "
+                                    "in row-major order", f"{len(bad)} other row(s)", _REWRITE))
+    for name, ok, words in (("illumination", lambda v: np.isin(v, (0, 1)), "0 or 1"),
+                            ("valid_fraction_rows", lambda v: (v >= 0) & (v <= 1), "in [0, 1]")):
+        values = data.get(name)
+        bad = np.argwhere(~ok(values)) if values is not None else []
+        if len(bad):
+            problems.append(Problem(name, listing(bad), f"values {words}", f"{len(bad)} other value(s)", _REWRITE))
+    written = data.get("written")
+    if written is not None:
+        if not np.isin(written, (0, 1)).all():
+            problems.append(Problem("written", listing(np.argwhere(~np.isin(written, (0, 1)))), "0 or 1",
+                                    "other values", f"the resume markers are corrupt; {_REWRITE}"))
+        elif attrs.get("complete") is True and not (written == 1).all():
+            problems.append(Problem("written", listing(np.argwhere(written != 1)), "every marker set (the store is "
+                                    "marked complete)", f"{int((written != 1).sum())} of {written.size} not set",
+                                    "run `btf ingest` again with the same --out to resume"))
+
+
+def _g_problems(G: zarr.Array, attrs: dict[str, Any], sizes: dict[str, int], data: dict[str, np.ndarray | None],
+                problems: list[Problem]) -> None:
+    """``G`` read block of rows by block: each row its bracket's pattern at its view (an ingested store) and
+    ``single_light`` as ``G`` says (every row one pair with weight 1)."""
+    meas, patterns = data.get("meas_index"), data.get("illumination")
+    layout = meas is not None and patterns is not None and "n_lv" in sizes and not any(
+        p.array in ("meas_index", "illumination") for p in problems)
+    single, wrong = True, []
+    step = max(1, int(G.chunks[0]))
+    for r in range(0, G.shape[0], step):
+        try:
+            block = np.asarray(G[r:r + step])
+        except CorruptChunkError as e:
+            problems.append(Problem("G", f"chunk {e.chunk}", "a chunk that reads back as written", e.problem, e.hint))
+            return
+        single = single and bool(np.all((block == 0) | (block == 1)) and np.all((block != 0).sum(axis=1) == 1))
+        if layout:
+            want = g_rows(meas[r:r + step], patterns, sizes["n_cam"], sizes["n_leds"], sizes["n_lv"])
+            wrong += (r + np.flatnonzero((block != want).any(axis=1))).tolist()
+    if wrong:
+        problems.append(Problem("G", f"row {listing(np.array(wrong)[:, None])}", "the pattern illumination[i] of "
+                                "each row's bracket meas_index = (t, c, i) at the LEDs of its view (t, c)",
+                                f"{len(wrong)} other row(s)", _REWRITE))
+    if isinstance(attrs.get("single_light"), bool) and attrs["single_light"] != single:
+        says = "every" if single else "not every"
+        problems.append(Problem(ROOT_ATTRS, "single_light", f"{str(single).lower()}, as G says ({says} row one "
+                                "light/view pair with weight 1)", str(attrs["single_light"]).lower(), _REWRITE))
 
 
 def read_G(group: zarr.Group) -> "sparse.csr_matrix":

@@ -133,3 +133,30 @@ def test_budget_and_bad_predictor_are_refused():
     with pytest.raises(ValueError, match="predictor"):
         run_adaptive(U, sigma, GEOMETRY, NOISE, _measure(truth, 0), n_tx=truth.shape[1], target=0.1, budget=3,
                      predictor="oracle")
+
+
+def test_replaying_recorded_groups_gives_the_same_run_without_choosing_them(monkeypatch):
+    """A resumed run (tasks.adaptive): the first recorded groups forced, the state, every step and every later
+    choice equal the uninterrupted run's, and the gains are computed only for the steps after them."""
+    U, sigma, truth = _problem(4)
+    kw = dict(n_tx=truth.shape[1], target=1e-9, budget=12, seed=5,
+              score=lambda C: log_y_error(U @ C[..., 0], _truth_y(truth)))
+    calls = []
+    gains = AdaptiveState.gains
+    monkeypatch.setattr(AdaptiveState, "gains", lambda self, model=None: calls.append(1) or gains(self, model))
+
+    def records(result):
+        return [{k: v for k, v in s.to_dict().items() if k != "cpu_s"} for s in result.steps]
+
+    full = run_adaptive(U, sigma, GEOMETRY, NOISE, _measure(truth, 5), **kw)
+    n0, chosen = full.settings["n_start"], len(calls)
+    assert full.replayed == 0 and chosen == 12 - n0 > 0
+    for n in (2, 7, 12):                                     # within the start design, after it, all of it
+        calls.clear()
+        again = run_adaptive(U, sigma, GEOMETRY, NOISE, _measure(truth, 5), replay=full.groups[:n], **kw)
+        assert again.replayed == n and len(calls) == 12 - max(n, n0)
+        assert records(again) == records(full) and again.stopped == full.stopped
+        np.testing.assert_array_equal(again.coefficients, full.coefficients)
+        np.testing.assert_array_equal(again.groups, full.groups)
+    with pytest.raises(ValueError, match="not recorded by a run of these inputs"):
+        run_adaptive(U, sigma, GEOMETRY, NOISE, _measure(truth, 5), replay=full.groups, **{**kw, "budget": 8})

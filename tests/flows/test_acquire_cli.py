@@ -51,3 +51,25 @@ def test_acquire_needs_adaptive_and_a_valid_target(acquisition_evaluation, model
     code, _, err = run_btf("acquire", "--adaptive", "--target-error", "0.1", *base[:4], "--class", "cloth",
                            *base[6:])
     assert code == 2 and "cloth" in err
+
+
+def test_acquire_refuses_the_outputs_of_another_run_unless_overwrite(acquisition_evaluation, model_report, run_btf,
+                                                                    tmp_path):
+    """Outputs without a step journal, or an unreadable journal, at --out are not overwritten silently
+    (tests/flows/test_kill_acquire.py: a journal of other inputs, and the resume)."""
+    db = acquisition_evaluation[0].parent / "acquisition-database"
+    truth = sorted(db.glob("*-carpet.zarr"))[0]
+    out = tmp_path / "acq"
+    out.mkdir()
+    (out / "report.json").write_text("{}")
+    args = ("acquire", "--adaptive", "--target-error", "0.3", "--budget", "4", "--truth", truth, "--model",
+            model_report, "--class", "carpet", "--out", out)
+    code, _, err = run_btf(*args)
+    assert code == 2 and "without a step journal (report.json)" in err and "--overwrite" in err, err
+    (out / "journal.json").write_text("not json")
+    code, _, err = run_btf(*args)
+    assert code == 2 and "unreadable step journal" in err, err
+    code, stdout, err = run_btf(*args, "--overwrite")
+    assert code == 0, err
+    journal = json.loads((out / "journal.json").read_text())
+    assert journal["finished"] and len(journal["steps"]) == json.loads(stdout)["shots"]

@@ -412,6 +412,17 @@ def _symlink_in_output(command: str):
     return make
 
 
+def _symlink_deep_in_a_store(i: Inputs, tmp: Path):
+    """An unfinished output store whose chunk folder is a link out of it: a resumed run would write there."""
+    out, outside = tmp / "out.zarr", tmp / "elsewhere"
+    (out / "btf").mkdir(parents=True)
+    outside.mkdir()
+    (out / "btf" / "c").symlink_to(outside)
+    return (["ingest", i.capture, "--out", out],
+            [f"--out {out}: btf/c is a symbolic link to {outside}, outside the output",
+             "remove the link or choose another --out"])
+
+
 def _class_as_path(i: Inputs, tmp: Path):
     return (["sample", "--model", i.model, "--class", "../leather", "--n", "20", "--out", tmp / "s.json"],
             [f"{i.model / 'model.zarr'}: no class '../leather' in the model store (classes/: leather)",
@@ -476,6 +487,7 @@ CASES: dict[str, Case] = {
     "manifest naming an absolute path": Case("crafted name or symlink", _manifest_names("{tmp}/x.dng")),
     "symlink out of the export-exr folder": Case("crafted name or symlink", _symlink_in_output("export-exr")),
     "symlink out of the plan folder": Case("crafted name or symlink", _symlink_in_output("plan")),
+    "symlink deep in an output store": Case("crafted name or symlink", _symlink_deep_in_a_store),
     "--class ../leather": Case("crafted name or symlink", _class_as_path),
     "profile that is not YAML": Case("malformed profile", _profile(
         "cluster: [unclosed\n", "is not valid YAML (line 2, column 1", "a profile holds plain keys and values only")),

@@ -304,7 +304,7 @@ def test_simulate(btf, tmp_path):
         return stage["views_skipped"], stage["views_rendered"]
 
     kill_matrix(btf, tmp_path, args, store=lambda out: out.parent / "000-stone.zarr",
-                count=lambda store: markers(store, "truth/written"), skipped=skipped, staged=False)
+                count=lambda store: markers(store, "truth/written"), skipped=skipped)
 
 
 @pytest.fixture(scope="module")
@@ -367,8 +367,30 @@ def test_build_db(btf, database, tmp_path):
     def args(out: Path) -> tuple[Any, ...]:
         return ("build-db", database, *SMALL_BASES, "--out", out.parent)
 
-    kill_matrix(btf, tmp_path, args, store=lambda out: out.parent / "model.zarr", count=keyed_bases,
-                staged=False)
+    kill_matrix(btf, tmp_path, args, store=lambda out: out.parent / "model.zarr", count=keyed_bases)
+
+
+def file_bytes(folder: Path) -> dict[str, bytes]:
+    """Every file below ``folder`` by its relative path."""
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_build_db_update_leaves_the_old_database_whole(btf, database, tmp_path):
+    """A rebuild that changes a complete model store (other bases) works on a copy beside it: killed after its
+    first refitted material, and again between the renames of its commit, the old store is untouched (a reader
+    sees the old or the new database, never a mix); the rerun resumes the copy, and equals a fresh build."""
+    old, new = ("--k-log-y", "8"), ("--k-log-y", "6")
+    out = tmp_path / "model"
+    btf.ok("build-db", database, *SMALL_BASES, *old, "--out", out)
+    before = file_bytes(out / "model.zarr")
+    btf.killed("chunk-done:1", "build-db", database, *SMALL_BASES, *new, "--out", out)
+    assert file_bytes(out / "model.zarr") == before and leftovers(out / "model.zarr") == ["model.partial.zarr"]
+    btf.killed("commit-start", "build-db", database, *SMALL_BASES, *new, "--out", out)
+    assert file_bytes(out / "model.zarr") == before
+    btf.ok("build-db", database, *SMALL_BASES, *new, "--out", out)
+    assert not leftovers(out / "model.zarr")
+    btf.ok("build-db", database, *SMALL_BASES, *new, "--out", tmp_path / "fresh")
+    assert_same_store(tmp_path / "fresh" / "model.zarr", out / "model.zarr", (tmp_path / "fresh", out))
 
 
 @pytest.fixture(scope="module")
@@ -411,7 +433,7 @@ def raw_folder(folder: Path, write_dng, scale: bool) -> Path:
 def test_import_raw(btf, write_dng, tmp_path):
     folder = raw_folder(tmp_path / "raw", write_dng, scale=True)
     kill_matrix(btf, tmp_path, lambda out: ("import-raw", folder, "--manifest", folder / "manifest.csv", "--device",
-                                            "tiny", "--out", out), staged=False, count=views_written)
+                                            "tiny", "--out", out), count=views_written)
 
 
 def test_import_raw_keeps_bracket_warnings_across_a_kill(btf, write_dng, tmp_path):
@@ -495,6 +517,11 @@ def test_render(btf, ingested, tmp_path):
 def test_plan(btf, tmp_path):
     file_matrix(btf, tmp_path, lambda out: ("plan", "--device", "tiny", "--strategy", "multiplexed", "--out", out),
                 files=("plan.json", "plan.csv"))
+
+
+def test_evaluate_ingest(btf, capture, ingested, tmp_path):
+    file_matrix(btf, tmp_path, lambda out: ("evaluate", "ingest", "--truth", capture, "--btf", ingested, "--report",
+                                            out), files=("",), name="report.json")
 
 
 def test_sample(btf, model, tmp_path):
@@ -614,7 +641,7 @@ def test_superres_train(btf, ingested, tmp_path):
     btf.killed("file-writing", *args(out))                   # trained, nothing written: the rerun trains again
     assert [p.name for p in out.parent.iterdir()] == ["m.pt.lock"]     # only the dead writer's lock
     btf.killed("file-replace", *args(out))
-    assert not out.exists() and (out.parent / ".m.pt.tmp").exists()
+    assert not out.exists() and (out.parent / ".m.tmp.pt").exists()
     btf.ok(*args(out))
     assert _model_file(out) == _model_file(reference)
     assert sorted(p.name for p in out.parent.iterdir()) == ["m.pt"], "leftovers beside the model"
@@ -643,14 +670,19 @@ def test_export_exr(btf, ingested, tmp_path):
     assert sorted(p.name for p in early.iterdir()) == files[:1]
     btf.ok(*args(early))
     assert {p.name: p.read_bytes() for p in early.iterdir()} == expected
-    btf.killed("file-replace", *args(out))
-    assert not list(out.glob("*.exr"))
+    btf.killed("file-replace", *args(out))                 # written beside, as a hidden .STEM.tmp.exr
+    assert not exr_files(out) and [p.name for p in out.iterdir()] == [f".{Path(files[0]).stem}.tmp.exr"]
     btf.killed("file-replace:4", *args(out))
-    assert sorted(p.name for p in out.glob("*.exr")) == files[:3]
+    assert exr_files(out) == files[:3]
     btf.ok(*args(out))
     assert {p.name: p.read_bytes() for p in out.iterdir()} == expected          # and no .tmp left
     btf.killed("file-replace:6", *args(out))
     assert {name: (out / name).read_bytes() for name in files} == expected
+
+
+def exr_files(folder: Path) -> list[str]:
+    """The EXR files a user sees in ``folder`` (not the hidden temporary file of a killed write)."""
+    return sorted(p.name for p in folder.glob("*.exr") if not p.name.startswith("."))
 
 
 def test_import_images(btf, tmp_path):
@@ -666,7 +698,7 @@ def test_import_images(btf, tmp_path):
     folder.mkdir()
     manifest = write_brackets(folder, "png")
     kill_matrix(btf, tmp_path, lambda out: ("import-images", folder, "--manifest", manifest, "--device", "tiny",
-                                            "--out", out), staged=False, count=views_written)
+                                            "--out", out), count=views_written)
 
 
 #: `btf evaluate superres` at its smallest: one leather and one cloth, each its own test material, 8 x 8 texels,

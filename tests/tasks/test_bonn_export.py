@@ -126,7 +126,7 @@ def test_dfmf_reads_back_equal_to_the_store(resampled, tmp_path, precision, eps)
     assert summary["max_abs_error"] == pytest.approx(float(np.abs(rgb - want).max()), rel=1e-3, abs=1e-7)
     if precision == "half":                     # rounding to half is visible, and bounded
         assert 1e-5 < summary["max_abs_error"] < 2e-3
-    assert not list(tmp_path.glob("*.partial"))
+    assert not list(tmp_path.glob(".*.tmp.*"))
 
 
 def test_the_header_holds_the_store_directions_and_the_cosine_flag(resampled, tmp_path):
@@ -222,7 +222,7 @@ def test_an_existing_out_is_refused_unless_overwrite(resampled, tmp_path):
         export_store(resampled.path, out, format="dfmf")
     assert out.read_bytes() == b"keep me"
     export_store(resampled.path, out, format="dfmf", overwrite=True)
-    assert out.read_bytes()[:10] == b"!DFMF08FCR" and not list(tmp_path.glob("*.partial"))
+    assert out.read_bytes()[:10] == b"!DFMF08FCR" and not list(tmp_path.glob(".*.tmp.*"))
 
 
 @pytest.mark.parametrize("change, match", [

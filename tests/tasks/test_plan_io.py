@@ -42,7 +42,7 @@ def test_json_and_csv_round_trip(tmp_path, tiny, which):
     assert on_disk["parameters"]["exposure"]["single_ms"][2] == 1000.0 / 3
     assert on_disk["predicted_time"]["total_s"] == pytest.approx(predict_time(plan).total_s)
     assert on_disk["predicted_time"]["model"] == TimeModelParams().to_dict()
-    assert not list((tmp_path / "p").glob("*.tmp"))
+    assert not list((tmp_path / "p").glob(".*.tmp.*"))
 
 
 def test_csv_rows(tmp_path, tiny):
