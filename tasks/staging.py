@@ -302,13 +302,17 @@ def _link_out_of(folder: Path) -> tuple[str, Path] | None:
     """The first symbolic link at any depth below ``folder`` (its path relative to it) that resolves outside
     ``folder``, with its target; links are not followed. One directory listing per folder of the output."""
     root = folder.resolve()
-    for parent, dirs, files in os.walk(folder):
-        for name in sorted(dirs + files):
-            entry = Path(parent, name)
+    pending = [str(folder)]
+    while pending:
+        with os.scandir(pending.pop()) as listing:
+            entries = sorted(listing, key=lambda e: e.name)
+        for entry in entries:           # the file type comes with the listing: no stat per file
             if entry.is_symlink():
-                target = entry.resolve()
+                target = Path(entry.path).resolve()
                 if target != root and root not in target.parents:
-                    return str(entry.relative_to(folder)), target
+                    return str(Path(entry.path).relative_to(folder)), target
+            elif entry.is_dir(follow_symlinks=False):
+                pending.append(entry.path)
     return None
 
 
