@@ -708,17 +708,32 @@ EVAL_SUPERRES = ("--sr-materials-per-class", "1", "--sr-texture", "8", "--sr-cam
 
 @pytest.mark.slow  # 35-90 s (load 2-10): its smallest scale applies 3 networks to 192 regions of 72 x 72 px, twice
 def test_evaluate_superres(btf, tmp_path):
-    """`btf evaluate superres` killed while its first capture store is created, once it is in place and after its
+    """`btf evaluate superres` at its smallest, its report checked (Table 2's methods and metrics, figures, the
+    rendering); then killed while its first capture store is created, once it is in place and after its
     first scored test material (simulate's and ingest's views before it); the rerun reuses the finished test
     materials and completes although a worker kills itself mid-stage (before a scores record, or in `superres
     apply`). Stores, model files, scores records, figures and report equal an uninterrupted run's."""
     from tasks.evaluate_superres import SuperresEvaluationConfig
+    from tasks.stores.btf import open_btf_store
 
     def args(out: Path) -> tuple[Any, ...]:
         return ("evaluate", "superres", "--out", out, *EVAL_SUPERRES)
 
     reference, out = tmp_path / "reference", tmp_path / "killed"
     btf.ok(*args(reference))
+    # the evaluation end to end at its smallest: one leather and one cloth, each its own networks
+    report = json.loads((reference / "report.json").read_text())
+    assert [r["material"] for r in report["materials"]] == ["000-leather", "001-cloth"]
+    for rec in report["materials"]:
+        for protocol in ("paper", "exact"):
+            for method in ("bicubic", "dong", "espcn"):
+                assert set(rec[protocol][method]) == {"mrmse", "mpsnr", "mre"}
+                assert 0 < rec[protocol][method]["mre"] < 100
+        assert len(rec["figures"]) == 5 and all((reference / f["file"]).is_file() for f in rec["figures"])
+    assert isinstance(report["verdicts"]["espcn_beats_dong_and_bicubic"], bool)
+    html = (reference / "report.html").read_text()
+    assert "SR paper Table 2, paper protocol" in html and "Scale invariance" in html
+    assert open_btf_store(report["rendering"]["store"]).texture_shape == (16, 16)
     device = SuperresEvaluationConfig(materials_per_class=1, n_train=0, n_validation=0, texture_size=8,
                                       camera_scale=1).simulation().build_device()
     materials = sorted(p.name for p in (reference / "db").glob("*.zarr"))

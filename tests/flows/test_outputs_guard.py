@@ -129,17 +129,6 @@ def test_refusals_name_cli_flags(run_btf, tmp_path):
         "--overwrite (overwrite=True)", ""), err
 
 
-def test_simulate_killed_while_creating_resumes(kill_btf_when, tmp_path):
-    db = tmp_path / "db"
-    first = db / "000-leather.zarr"
-    args = ["simulate", "--materials", "1", "--turntable", "1", "--texture-size", "8", "--out", str(db)]
-    kill_btf_when(args, lambda: first.exists() or (db / ".000-leather.zarr.creating").exists())
-    rerun = subprocess.run([sys.executable, "-m", "flows.cli", "--no-progress", *args], cwd=ROOT,
-                           capture_output=True, text=True, timeout=300)
-    assert rerun.returncode == 0, rerun.stderr
-    assert zarr.open_group(str(first), mode="r").attrs["complete"] is True
-
-
 def test_bad_manifest_fails_fast_without_traceback(tmp_path, write_dng):
     import numpy as np
 

@@ -105,23 +105,3 @@ def test_bad_input_is_one_message_and_exit_2(run_btf, regions, tmp_path, case):
     assert code == 2, (code, err)
     assert want in err and "Traceback" not in err and out == ""
     assert not (tmp_path / "x.zarr").exists()
-
-
-def test_evaluate_superres_reports_table_2(run_btf, tmp_path):
-    """The evaluation end to end at its smallest: one leather and one cloth, each its own networks."""
-    out = tmp_path / "eval"
-    code, stdout, err = run_btf("evaluate", "superres", "--out", out, "--sr-materials-per-class", "1",
-                                "--sr-texture", "16", "--sr-camera-scale", "1", "--sr-epochs", "2")
-    assert code == 0, err
-    report = json.loads((out / "report.json").read_text())
-    assert [r["material"] for r in report["materials"]] == ["000-leather", "001-cloth"]
-    for rec in report["materials"]:
-        for protocol in ("paper", "exact"):
-            for method in ("bicubic", "dong", "espcn"):
-                assert set(rec[protocol][method]) == {"mrmse", "mpsnr", "mre"}
-                assert 0 < rec[protocol][method]["mre"] < 100
-        assert len(rec["figures"]) == 5 and all((out / f["file"]).is_file() for f in rec["figures"])
-    assert isinstance(report["verdicts"]["espcn_beats_dong_and_bicubic"], bool)
-    html = (out / "report.html").read_text()
-    assert "SR paper Table 2, paper protocol" in html and "Scale invariance" in html
-    assert open_btf_store(report["rendering"]["store"]).texture_shape == (32, 32)
