@@ -55,6 +55,10 @@ def add_acquire_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--weighting", default="relative", choices=("relative", "none"),
                    help="row weights of the solve: relative to each row's brightness, or none (paper 4 eq. 10 as "
                         "is) [default: relative]")
+    p.add_argument("--time-aware", action="store_true",
+                   help="choose the group with the largest expected error reduction per second of the time model "
+                        "(a turntable move, 5 s, must buy its time) instead of per shot: fewer moves, a shorter "
+                        "acquisition for its error, possibly more shots")
     p.add_argument("--no-compare", action="store_true", help="skip the fixed samplings of the report")
     p.add_argument("--seed", type=int, default=0, help="seed of the simulated noise [default: 0]")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (report, plans, step journal)")
@@ -79,7 +83,7 @@ def run_acquire(args: argparse.Namespace) -> int:
     doc = acquire_adaptive(args.truth, args.model, args.cls, args.out, target=args.target_error,
                            budget=args.budget, device_name=args.device, seed=args.seed, compare=not args.no_compare,
                            predictor=args.predictor, weighting=args.weighting, overwrite=args.overwrite,
-                           say=lambda line: say(line, not args.quiet))
+                           say=lambda line: say(line, not args.quiet), time_aware=args.time_aware)
     rec = doc["record"]
     last = rec["steps"][-1]
     summary: dict[str, Any] = {

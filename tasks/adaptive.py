@@ -138,13 +138,23 @@ def adaptive_plan(device: Device, groups: Sequence[int], exposure: ExposureModel
 # --------------------------------------------------------------------------- one material
 
 
+def shot_times(device: Device, params: TimeModelParams | None = None) -> dict[str, float]:
+    """``{"shot_s", "move_s"}``: the time model's seconds for one group's shot on ``device`` (a one-shot
+    plan, :func:`adaptive_plan`) and for a turntable move (paper 4 §5.2's time model,
+    :mod:`btfcore.acquisition.time_model`), for the time-aware choice of
+    :func:`~btfcore.acquisition.adaptive.run_adaptive`."""
+    params = params or TimeModelParams()
+    return {"shot_s": float(predict_time(adaptive_plan(device, [0]), params).total_s),
+            "move_s": float(params.turntable_move_s)}
+
+
 def adaptive_material(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, truth: np.ndarray, noise: SensorNoise,
                       device: Device, *, target: float, budget: int, seed: int, light_dir: np.ndarray | None = None,
                       view_dir: np.ndarray | None = None, sampling_steps: int = 1500, plans_dir: Path | None = None,
                       predictor: str = "posterior", weighting: str = "relative",
                       replay: Sequence[dict[str, Any]] = (),
-                      on_record: Callable[[dict[str, Any], dict[str, Any] | None], None] | None = None
-                      ) -> dict[str, Any]:
+                      on_record: Callable[[dict[str, Any], dict[str, Any] | None], None] | None = None,
+                      time_aware: bool = False) -> dict[str, Any]:
     """The loop on one simulated material (truth ``(n_lv, h, w, 3)``), with the fixed samplings beside it.
 
     With ``plans_dir`` every step's shot is written there as ``step_NNN.json`` / ``.csv`` (a plan of one
@@ -153,8 +163,9 @@ def adaptive_material(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, trut
     (:func:`~btfcore.acquisition.adaptive.run_adaptive`'s ``replay``), their plans are not written again
     (unless missing) and the returned record holds them as given (with their CPU seconds).
     ``on_record(step, recorded)`` is called after every step (its plan written): ``step`` its plain-JSON
-    record, ``recorded`` the replayed record or None for a step this run chose. Returns a plain-JSON
-    record (steps, predicted time, fixed curves).
+    record, ``recorded`` the replayed record or None for a step this run chose. ``time_aware``: the next
+    group maximises the expected reduction per second of the time model (:func:`shot_times`), so that
+    a turntable move must buy its 5 s. Returns a plain-JSON record (steps, predicted time, fixed curves).
     """
     from tasks.plan import write_plan
 
@@ -173,7 +184,8 @@ def adaptive_material(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, trut
     result: AdaptiveResult = run_adaptive(U, sigma, geometry, noise, measure, n_tx=truth.shape[1], target=target,
                                           budget=budget, seed=seed, score=truth_score(U, truth), on_step=on_step,
                                           predictor=predictor, weighting=weighting,
-                                          replay=[int(s["group"]) for s in replay])
+                                          replay=[int(s["group"]) for s in replay],
+                                          **(shot_times(device) if time_aware else {}))
     plan = adaptive_plan(device, result.groups)
     steps = [dict(s) for s in replay] + [s.to_dict() for s in result.steps[len(replay):]]
     record = {**result.to_dict(), "steps": steps, "pairs": group_pairs(result.groups, geometry.n_leds).tolist(),
@@ -438,7 +450,8 @@ def acquire_adaptive(truth_path: str | os.PathLike, model_path: str | os.PathLik
                      out_dir: str | os.PathLike, *, target: float, budget: int | None = None,
                      device_name: str | None = None, seed: int = 0, compare: bool = True,
                      sampling_steps: int = 1500, predictor: str = "posterior", weighting: str = "relative",
-                     overwrite: bool = False, say: Callable[[str], None] | None = None) -> dict[str, Any]:
+                     overwrite: bool = False, say: Callable[[str], None] | None = None,
+                     time_aware: bool = False) -> dict[str, Any]:
     """``btf acquire --adaptive`` on a simulated material: the loop on a truth BTF store, plans, report.
 
     Resumable (docs/adaptive-capture.md, "Resume"): every finished step is recorded in the journal
@@ -462,6 +475,9 @@ def acquire_adaptive(truth_path: str | os.PathLike, model_path: str | os.PathLik
         Most shots (default: every (turntable, LED) group).
     overwrite : bool
         Discard the steps and outputs of a run of other inputs at ``out_dir`` (else refused).
+    time_aware : bool
+        Choose by expected reduction per second of the time model, a turntable move included
+        (:func:`adaptive_material`), instead of per shot.
     say : callable, optional
         ``say(line)``: an info line (a resumed run says how many steps it replays).
 
@@ -509,7 +525,7 @@ def acquire_adaptive(truth_path: str | os.PathLike, model_path: str | os.PathLik
               "basis": _array_digest(U, sigma), "class": cls, "device": device.name,
               "geometry": [geometry.n_turn, geometry.n_cam, geometry.n_leds, h, w], "target": target,
               "budget": budget, "seed": seed, "predictor": predictor, "weighting": weighting, "compare": compare,
-              "sampling_steps": sampling_steps}
+              "sampling_steps": sampling_steps, **({"time_aware": True} if time_aware else {})}
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     journal_path = out / JOURNAL
@@ -539,7 +555,7 @@ def acquire_adaptive(truth_path: str | os.PathLike, model_path: str | os.PathLik
                             light_dir=truth_store.light_dir if compare else None,
                             view_dir=truth_store.view_dir if compare else None, sampling_steps=sampling_steps,
                             plans_dir=out / "plans", predictor=predictor, weighting=weighting,
-                            replay=replay, on_record=on_record)
+                            replay=replay, on_record=on_record, time_aware=time_aware)
     plan_doc = write_plan(adaptive_plan(device, rec["groups"]), out / "plan.json", out / "plan.csv", device=device)
     material = (attrs.get("material") or {}).get("material_id") or Path(str(truth_path)).stem
     summary = {"schema": "btf-adaptive-acquisition", "material": material, "class": cls, "target": target,

@@ -54,7 +54,7 @@ from btfcore.acquisition.strategies import Geometry, _groups
 from btfcore.model.colour import LOG_YUV_EPS, REC709_LUMA
 
 __all__ = ["PREDICTORS", "WEIGHTINGS", "AdaptiveResult", "AdaptiveState", "Step", "group_pairs", "group_rows",
-           "log_y_error", "run_adaptive", "start_groups"]
+           "log_y_error", "run_adaptive", "shot_costs", "start_groups"]
 
 #: The error predictors every step records; the first stops the loop (docs/adaptive-capture.md).
 PREDICTORS: tuple[str, ...] = ("posterior", "cv")
@@ -357,6 +357,17 @@ class AdaptiveState:
         return out
 
 
+def shot_costs(groups: Sequence[int], geometry: Geometry, shot_s: float, move_s: float) -> np.ndarray:
+    """The time each group's shot would take next, ``(n_turn * n_leds,)``: ``shot_s``, plus ``move_s`` where
+    its turntable position differs from that of the last shot in ``groups`` (none yet: no move)."""
+    if shot_s <= 0 or move_s < 0:
+        raise ValueError(f"shot_s must be > 0 and move_s >= 0, got {shot_s}, {move_s}")
+    turntable = np.arange(geometry.n_turn * geometry.n_leds) // geometry.n_leds
+    if not len(groups):
+        return np.full(turntable.shape, float(shot_s))
+    return shot_s + move_s * (turntable != groups[-1] // geometry.n_leds)
+
+
 def start_groups(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, n: int, lam: float = LAMBDA_ALS
                  ) -> list[int]:
     """The first ``n`` groups, before any data: greedy A-optimal design on :math:`U\\Sigma` (homoscedastic
@@ -379,7 +390,7 @@ def run_adaptive(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, noise: Se
                  predictor: str = "posterior", seed: int = 0, weighting: str = "relative",
                  score: Callable[[np.ndarray], float] | None = None,
                  on_step: Callable[[Step, np.ndarray], None] | None = None,
-                 replay: Sequence[int] = ()) -> AdaptiveResult:
+                 replay: Sequence[int] = (), shot_s: float = 1.0, move_s: float = 0.0) -> AdaptiveResult:
     """The closed loop: choose a group, measure it, update, predict, until target or budget.
 
     Parameters
@@ -414,6 +425,11 @@ def run_adaptive(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, noise: Se
         gains are computed for them): the groups a killed run recorded. Each is measured and added
         as in the run that chose it, so with the same inputs and a deterministic ``measure`` the state,
         the steps and every later choice equal an uninterrupted run's (``tasks.adaptive``'s resume).
+    shot_s, move_s : float
+        The time of one shot and of a turntable move, in any one unit. With ``move_s > 0`` the next
+        group is the one with the largest expected reduction *per unit of time*, ``gain / (shot_s +
+        move_s [its turntable position is not the last shot's])`` (the time-aware choice: a move costs
+        shots' worth of time); with ``move_s = 0`` (default) the largest expected reduction.
 
     Returns
     -------
@@ -438,7 +454,7 @@ def run_adaptive(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, noise: Se
         elif len(state.groups) < n0:
             group = first[len(state.groups)]
         else:
-            group = int(np.argmax(state.gains(model)))
+            group = int(np.argmax(state.gains(model) / shot_costs(state.groups, geometry, shot_s, move_s)))
         rows = state.rows_of(group)
         t_choose = time.process_time() - t0
         y, gain = measure(group, rows)
@@ -463,4 +479,6 @@ def run_adaptive(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, noise: Se
     return AdaptiveResult(steps, stopped, np.asarray(state.groups, dtype=np.int64), state.rows.copy(),
                           state.coefficients(), {"target": target, "budget": budget, "lam": lam, "n_start": n0,
                                                  "predictor": predictor, "weighting": weighting, "k": state.k,
-                                                 "n_cam": geometry.n_cam}, replayed=len(replay))
+                                                 "n_cam": geometry.n_cam,
+                                                 **({"shot_s": shot_s, "move_s": move_s} if move_s else {})},
+                          replayed=len(replay))

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from btfcore.acquisition.adaptive import (AdaptiveState, group_rows, log_y_error, run_adaptive, start_groups)
+from btfcore.acquisition.adaptive import (AdaptiveState, group_rows, log_y_error, run_adaptive, shot_costs,
+                                         start_groups)
 from btfcore.acquisition.noise import SensorNoise, exposure_gain, expose
 from btfcore.acquisition.strategies import Geometry
 
@@ -124,6 +125,29 @@ def test_stops_at_the_target_and_is_seeded():
     assert [s.predicted for s in again.steps] == [s.predicted for s in res.steps]
     assert len(set(res.groups.tolist())) == len(res.groups)                        # each group once
     assert all(s.true is not None and np.isfinite(s.true) for s in res.steps)
+
+
+def _moves(groups) -> int:
+    turntable = np.asarray(groups) // GEOMETRY.n_leds
+    return int(np.count_nonzero(np.diff(turntable)))
+
+
+def test_the_time_aware_choice_moves_the_turntable_less():
+    """With a move worth several shots the loop stays on a turntable position while its gain per second is
+    highest; a move of zero seconds chooses exactly as the choice per shot; each choice maximises gain/cost."""
+    U, sigma, truth = _problem(4)
+    kw = dict(n_tx=truth.shape[1], target=1e-9, budget=20, seed=1)
+    per_shot = run_adaptive(U, sigma, GEOMETRY, NOISE, _measure(truth, 1), **kw)
+    free_moves = run_adaptive(U, sigma, GEOMETRY, NOISE, _measure(truth, 1), shot_s=4.0, move_s=0.0, **kw)
+    assert free_moves.groups.tolist() == per_shot.groups.tolist()
+    timed = run_adaptive(U, sigma, GEOMETRY, NOISE, _measure(truth, 1), shot_s=1.0, move_s=5.0, **kw)
+    assert _moves(timed.groups) < _moves(per_shot.groups), (timed.groups, per_shot.groups)
+    assert timed.settings["move_s"] == 5.0 and "move_s" not in per_shot.settings
+    costs = shot_costs([0, 17], GEOMETRY, 1.0, 5.0)          # last shot on turntable position 1
+    assert costs.shape == (32,) and set(costs[:16]) == {6.0} and set(costs[16:]) == {1.0}
+    assert set(shot_costs([], GEOMETRY, 2.0, 5.0)) == {2.0}
+    with pytest.raises(ValueError, match="shot_s"):
+        shot_costs([0], GEOMETRY, 0.0, 5.0)
 
 
 def test_budget_and_bad_predictor_are_refused():

@@ -38,6 +38,18 @@ def test_acquire_adaptive_tiny(acquisition_evaluation, model_report, run_btf, tm
     assert {f["n_thesis"] for f in doc["record"]["fixed"]} == {100, 200, 400, None}
     html = (out / "report.html").read_text()
     assert "error_vs_shots.png" in html and (out / "error_vs_shots.png").exists()
+    # the time-aware choice: a run of other inputs (refused into the same --out), fewer turntable moves
+    base = ("acquire", "--adaptive", "--target-error", "0.05", "--budget", "8", "--truth", truth, "--model",
+            model_report, "--class", "carpet", "--no-compare", "--time-aware", "--out")
+    code, _, err = run_btf(*base, out)
+    assert code == 2 and "--overwrite" in err, err
+    code, stdout, err = run_btf(*base, tmp_path / "timed")
+    assert code == 0, err
+    timed = json.loads((tmp_path / "timed" / "report.json").read_text())["record"]
+    assert timed["settings"]["move_s"] == 5.0 and timed["settings"]["shot_s"] > 0
+    moves = [sum(a["turntable"] != b["turntable"] for a, b in zip(r["steps"], r["steps"][1:]))
+             for r in (timed, doc["record"])]
+    assert moves[0] <= moves[1], moves
 
 
 def test_acquire_needs_adaptive_and_a_valid_target(acquisition_evaluation, model_report, run_btf, tmp_path):
