@@ -70,9 +70,12 @@ EVAL_BASES = ("log_y", "u_y", "v_y", "abtf_log_y", "als", LINEAR_SVD)
 def fit_bases(model_path: str, materials: Sequence[Material], settings: ModelSettings, client: Any, *,
               progress: Progress | None = None) -> list[dict[str, Any]]:
     """Per-material bases of every material (:func:`tasks.model.fit_material`), one Dask task each;
-    a rerun reuses every stored basis whose key is unchanged."""
-    open_model_store(model_path, materials)
-    return run_all(client, fit_material, [(model_path, m, settings, EVAL_BASES) for m in materials], progress)
+    a rerun reuses every stored basis whose key is unchanged. The store is marked ``complete`` once every
+    basis is in (it holds per-material bases only: the leave-one-out merges are not stored)."""
+    group = open_model_store(model_path, materials)
+    fits = run_all(client, fit_material, [(model_path, m, settings, EVAL_BASES) for m in materials], progress)
+    group.attrs["complete"] = True
+    return fits
 
 
 def leave_one_out_bases(model_path: str, materials: Sequence[Material], material_id: str,
