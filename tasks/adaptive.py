@@ -37,7 +37,7 @@ from btfcore.acquisition.band_evaluation import noisy_single
 from btfcore.acquisition.noise import SensorNoise, exposure_gain
 from btfcore.acquisition.plan import CapturePlan, ExposureModel, Shot
 from btfcore.acquisition.sampling import parabolic_map_sampling, random_swap
-from btfcore.acquisition.strategies import THESIS_N_S, Geometry, _groups, scaled_pairs
+from btfcore.acquisition.strategies import THESIS_N_S, Geometry, row_groups, scaled_pairs
 from btfcore.acquisition.time_model import TimeModelParams, predict_time
 from btfcore.dome import Device
 from btfcore.model.colour import REC709_LUMA
@@ -108,12 +108,12 @@ def fixed_curves(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, truth: np
     for n in n_thesis:
         n_s = scaled_pairs(n, n_pairs)
         k_s = min(U.shape[1], n_s * geometry.n_cam)
-        sel = random_swap(US[:, :k_s], n_s, groups=_groups(geometry, geometry.n_leds), max_steps=sampling_steps,
+        sel = random_swap(US[:, :k_s], n_s, groups=row_groups(geometry, geometry.n_leds), max_steps=sampling_steps,
                           seed=seed + n)
         out.append({"name": f"random swap n_s={n} (scaled {n_s})", "n_thesis": int(n), "n_shots": int(n_s),
                     "n_meas": int(n_s * geometry.n_cam), "error": solve(np.asarray(sel.units))})
     pmap = np.unique(np.asarray(parabolic_map_sampling(light_dir, view_dir, 7), dtype=np.int64))
-    groups = np.unique(_groups(geometry, geometry.n_leds)[pmap])
+    groups = np.unique(row_groups(geometry, geometry.n_leds)[pmap])
     out.append({"name": "7x7 parabolic map (its groups, all cameras)", "n_thesis": None, "n_shots": int(len(groups)),
                 "n_meas": int(len(groups) * geometry.n_cam), "error": solve(groups)})
     return out
@@ -278,18 +278,18 @@ def _adaptive_task(model_path: str, materials: list[Any], material_id: str, sett
                    fixed_n400: float | None, record_path: str, key: str) -> dict[str, Any]:
     """One held-out material of the evaluation (a Dask task): its leave-one-out ALS basis, the loop to the
     budget of the thesis' n_s = 400 scaled, and the fixed samplings; stored under ``key``."""
-    from tasks.evaluate_acquisition.graph import _geometry, _material_index, leave_one_out_bases
+    from tasks.evaluate_acquisition.graph import material_geometry, material_index, leave_one_out_bases
     from tasks.evaluate_acquisition.reuse import write_record
 
     m = next(x for x in materials if x.material_id == material_id)
     als = leave_one_out_bases(model_path, materials, material_id, settings)["als"]
-    geometry = _geometry(m)
+    geometry = material_geometry(m)
     group = zarr.open_group(m.path, mode="r", zarr_format=3)
     truth = np.asarray(group["btf"][...], dtype=np.float32)
     device = config.build_device()
     noise = SensorNoise(float(device.sensor.full_well_e), float(device.sensor.read_noise_e), config.fill)
     budget = scaled_pairs(THESIS_N_S[-1], geometry.n_turn * geometry.n_leds)
-    seed = config.seed + _material_index(material_id) % 100000
+    seed = config.seed + material_index(material_id) % 100000
     rec = adaptive_material(np.asarray(als.U, dtype=np.float64), np.asarray(als.sigma, dtype=np.float64), geometry,
                             truth, noise, device, target=0.0, budget=budget, seed=seed,
                             light_dir=np.asarray(group["light_dir"][...]), view_dir=np.asarray(group["view_dir"][...]),
@@ -490,7 +490,7 @@ def acquire_adaptive(truth_path: str | os.PathLike, model_path: str | os.PathLik
     from btfcore.dome import get_device
     from tasks.faults import kill_point
     from tasks.plan import write_plan
-    from tasks.reconstruct import _basis, _check_sampling, open_model
+    from tasks.reconstruct import class_basis, check_sampling, open_model
     from tasks.report import write_json
     from tasks.stores.btf import open_btf_store
 
@@ -515,8 +515,8 @@ def acquire_adaptive(truth_path: str | os.PathLike, model_path: str | os.PathLik
                          f"the store's {geometry.n_turn} x {geometry.n_cam} x {geometry.n_leds} rows")
     device = device.with_overrides(turntable_angle_deg=device.turntable_angle_deg[:geometry.n_turn])
     model = open_model(model_path)
-    _check_sampling(model, truth_store.group, truth_path)
-    U, sigma = _basis(model, cls, "als", None, model_path)
+    check_sampling(model, truth_store.group, truth_path)
+    U, sigma = class_basis(model, cls, "als", None, model_path)
     truth = np.asarray(truth_store.btf[...], dtype=np.float32)
     noise = SensorNoise(float(device.sensor.full_well_e), float(device.sensor.read_noise_e))
     n_groups = geometry.n_turn * geometry.n_leds

@@ -166,7 +166,7 @@ def read_input(path: str | os.PathLike) -> tuple[zarr.Group, str]:
                      f"a BTF store ({SCHEMA_NAME})")
 
 
-def _check_sampling(model: zarr.Group, data: zarr.Group, data_path: Any) -> None:
+def check_sampling(model: zarr.Group, data: zarr.Group, data_path: Any) -> None:
     """The basis' light/view rows must be the measurement's full rows (same order, same directions)."""
     ml, mv = model["light_dir"][...], model["view_dir"][...]
     dl, dv = data["light_dir"][...], data["view_dir"][...]
@@ -213,7 +213,10 @@ def _check_class(model: zarr.Group, cls: str, names: tuple[str, ...], model_path
                          "what the class has, or build the model with that basis")
 
 
-def _basis(model: zarr.Group, cls: str, name: str, k: int | None, model_path: Any) -> tuple[np.ndarray, np.ndarray]:
+def class_basis(model: zarr.Group, cls: str, name: str, k: int | None, model_path: Any) -> tuple[np.ndarray, np.ndarray]:
+    """The class ``cls``'s basis ``name`` of the opened model store: ``U (n_lv, k)`` and ``sigma (k,)``, its first
+    ``k`` vectors (all for ``None``); a class or basis the store lacks, or ``k`` above its size, is refused
+    naming ``model_path`` and what it holds."""
     from tasks.model import read_basis
 
     _check_class(model, cls, (name,), model_path)             # a class name never indexes the store as a path
@@ -328,7 +331,7 @@ def build_operators(settings: ReconstructSettings, model: zarr.Group, G: np.ndar
     """
     s = settings
     if s.basis == "als":
-        U, sigma = _basis(model, s.cls, "als", s.k, model_path)
+        U, sigma = class_basis(model, s.cls, "als", s.k, model_path)
         if G is None:
             return {"rgb": solve_operator(U, sigma, method=s.method, lam=s.lam, variance=variance, decile=s.decile)}
         Gs = _corrected_G(G, correction)
@@ -346,7 +349,7 @@ def build_operators(settings: ReconstructSettings, model: zarr.Group, G: np.ndar
     ops: dict[str, SolveOperator] = {}
     for part, name in (("y", "log_y"), ("u", "u_y"), ("v", "v_y")):
         if part == "y" and s.basis == "abtf_log_y":
-            U, sigma = _basis(model, s.cls, "abtf_log_y", s.k, model_path)
+            U, sigma = class_basis(model, s.cls, "abtf_log_y", s.k, model_path)
             p = int(round(np.sqrt(U.shape[0] / n_lv)))
             if p * p * n_lv != U.shape[0]:
                 raise ValueError(f"{model_path}: classes/{s.cls}/abtf_log_y has {U.shape[0]} rows, not p² x {n_lv}")
@@ -355,7 +358,7 @@ def build_operators(settings: ReconstructSettings, model: zarr.Group, G: np.ndar
             ops[part] = abtf_operator(U, np.arange(n_lv) if rows is None else rows, p=p, sigma=sigma,
                                       method=s.method, lam=s.lam)
             continue
-        U, sigma = _basis(model, s.cls, name, s.k if part == "y" else None, model_path)
+        U, sigma = class_basis(model, s.cls, name, s.k if part == "y" else None, model_path)
         ops[part] = solve_operator(U, sigma, method=s.method, rows=rows, lam=s.lam)
     return ops
 
@@ -485,7 +488,7 @@ def check_inputs(in_path: str | os.PathLike, model_path: str | os.PathLike, sett
     data, kind = read_input(in_path)
     model = open_model(model_path)
     _check_class(model, settings.cls, (), model_path)
-    _check_sampling(model, data, in_path)
+    check_sampling(model, data, in_path)
     n_turn, n_cam, n_leds = data.attrs["turntable_cameras_leds"]
     G = _measurement_G(data, kind)
     correction = _correction(data, kind, G, calibration, in_path)
@@ -568,7 +571,7 @@ def reconstruct_store(in_path: str | os.PathLike, model_path: str | os.PathLike,
     data, kind = read_input(in_path)
     model = open_model(model_path)
     _check_class(model, settings.cls, (), model_path)   # before a store path uses the class name
-    _check_sampling(model, data, in_path)
+    check_sampling(model, data, in_path)
     out = Path(out_path)
     key = reconstruct_hash(data, model, settings, band_rows, calibration)
     finish_interrupted_commit(out)

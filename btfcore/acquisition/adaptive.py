@@ -50,7 +50,7 @@ import numpy as np
 
 from btfcore.acquisition.noise import SensorNoise, exposure_gain
 from btfcore.acquisition.reconstruct import LAMBDA_ALS
-from btfcore.acquisition.strategies import Geometry, _groups
+from btfcore.acquisition.strategies import Geometry, row_groups
 from btfcore.model.colour import LOG_YUV_EPS, REC709_LUMA
 
 __all__ = ["PREDICTORS", "WEIGHTINGS", "AdaptiveResult", "AdaptiveState", "Step", "group_pairs", "group_rows",
@@ -164,7 +164,7 @@ class AdaptiveState:
         if self.n_lv != geometry.n_lv:
             raise ValueError(f"the basis has {self.n_lv} rows, the geometry {geometry.n_lv} light/view pairs")
         self.n_tx = int(n_tx)
-        self.group_of_row = _groups(geometry, geometry.n_leds)
+        self.group_of_row = row_groups(geometry, geometry.n_leds)
         self.n_groups = geometry.n_turn * geometry.n_leds
         self.M = self.lam ** 2 * np.eye(self.k)                      # A^T A + lam^2 I (paper 4 eq. 10, D-space)
         self.b = np.zeros((self.k, self.n_tx * 3))                    # A^T y, linear RGB

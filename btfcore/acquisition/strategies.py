@@ -129,7 +129,7 @@ class StrategyBases:
     linear: Any
 
 
-def _groups(geometry: Geometry, per_view: int) -> np.ndarray:
+def row_groups(geometry: Geometry, per_view: int) -> np.ndarray:
     """Group id ``turntable * per_view + j`` of every row ``(turntable, camera, j)`` (all cameras together)."""
     t = np.repeat(np.arange(geometry.n_turn), geometry.n_cam * per_view)
     j = np.tile(np.arange(per_view), geometry.n_views)
@@ -200,7 +200,7 @@ class _Design:
             # with fewer measured rows than vectors, kappa is taken on the leading vectors the rows can determine
             k_s = min(int(als.U.shape[1]), n_s * g.n_cam)
             US = als.U * als.sigma[None, :]
-            sel = random_swap(US[:, :k_s], n_s, groups=_groups(g, g.n_leds), max_steps=self.sampling_steps,
+            sel = random_swap(US[:, :k_s], n_s, groups=row_groups(g, g.n_leds), max_steps=self.sampling_steps,
                               seed=self.seed + n_thesis)
             self._sparse[n_thesis] = (_rows_of_groups(np.asarray(sel.units), g, g.n_leds), sel)
         return self._sparse[n_thesis]
@@ -211,7 +211,7 @@ class _Design:
         g, als, n_p = self.geometry, self.bases.als, self.patterns.shape[0]
         n_s = scaled_pairs(THESIS_N_S[-1], g.n_turn * n_p)
         A = multiplexed_basis(self.patterns, als.U, als.sigma)
-        sel = random_swap(A[:, :min(int(als.U.shape[1]), n_s * g.n_cam)], n_s, groups=_groups(g, n_p),
+        sel = random_swap(A[:, :min(int(als.U.shape[1]), n_s * g.n_cam)], n_s, groups=row_groups(g, n_p),
                           max_steps=self.sampling_steps, seed=self.seed + 1)
         return _rows_of_groups(np.asarray(sel.units), g, n_p), sel, n_s
 

@@ -188,7 +188,8 @@ def evaluate_band(path: str, r0: int, r1: int, strategies: list[Strategy], gains
 # --------------------------------------------------------------------------- reductions and operators (tasks)
 
 
-def _material_index(material_id: str) -> int:
+def material_index(material_id: str) -> int:
+    """A stable integer of a material id (the first 32 bits of its SHA-256), for per-material seeds."""
     return int(hashlib.sha256(material_id.encode()).hexdigest()[:8], 16)
 
 
@@ -235,7 +236,7 @@ def _operators(model_path: str, materials: list[Material], material_id: str, set
     group = zarr.open_group(material.path, mode="r", zarr_format=3)
     sensor = config.build_device().sensor
     return build_strategies(bases, geometry, np.asarray(group["light_dir"][...]), np.asarray(group["view_dir"][...]),
-                            variance, patterns, config.seed + _material_index(material_id) % 100000,
+                            variance, patterns, config.seed + material_index(material_id) % 100000,
                             abrdf_k_fraction=config.abrdf_k_fraction, sampling_steps=config.sampling_steps,
                             noise=SensorNoise(float(sensor.full_well_e), float(sensor.read_noise_e), config.fill))
 
@@ -273,7 +274,7 @@ def _reduce_scores(parts: list[dict[str, BandScores]]) -> dict[str, BandScores]:
     return out
 
 
-def _geometry(material: Material) -> Geometry:
+def material_geometry(material: Material) -> Geometry:
     attrs = dict(zarr.open_group(material.path, mode="r", zarr_format=3).attrs)
     tcl = attrs.get("turntable_cameras_leds")
     if not tcl or int(np.prod(tcl)) != material.n_lv:
@@ -310,7 +311,7 @@ def _submit_material(client: Any, model_path: str, materials: list[Material], m:
                      config: EvaluationConfig, noise: SensorNoise, write: dict[str, str] | None) -> tuple[Any, Any, Any]:
     """Submit one held-out material's chain of tasks; futures of its (scores, (info, sampling), maxima)."""
     patterns = multiplexing_patterns(geometry.n_leds)
-    seed = (config.seed, _material_index(m.material_id) % (1 << 31))
+    seed = (config.seed, material_index(m.material_id) % (1 << 31))
     parts = bands(geometry.height, config.band_rows)
 
     def each_band(fn: Any, *args: Any) -> list[Any]:
@@ -397,7 +398,7 @@ def evaluate_materials(model_path: str, materials: list[Material], config: Evalu
         if record is not None:
             records[m.material_id] = record
             continue
-        scores, info, maxima = _submit_material(client, model_path, materials, m, _geometry(m), config, noise, write)
+        scores, info, maxima = _submit_material(client, model_path, materials, m, material_geometry(m), config, noise, write)
         finals[m.material_id] = client.submit(_finish_material, str(record_path), key, m.cls, scores, info, maxima,
                                               write, pure=False)
     done = dict(zip(finals, wait_all(list(finals.values()), progress)))

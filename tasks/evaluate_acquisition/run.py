@@ -20,7 +20,7 @@ from tasks.evaluate_acquisition.claims import (
     thesis_tables,
 )
 from tasks.evaluate_acquisition.config import STRUCTURED_CLASSES, EvaluationConfig, truth_specs
-from tasks.evaluate_acquisition.graph import EVAL_BASES, _geometry, evaluate_materials, fit_bases
+from tasks.evaluate_acquisition.graph import EVAL_BASES, material_geometry, evaluate_materials, fit_bases
 from tasks.evaluate_acquisition.report import abrdf_images, env_map_path, renderings, scale_of
 from tasks.evaluate_acquisition.reuse import figures_key, figures_present, read_record, scores_key, write_record
 from tasks.evaluate_acquisition.truth import ensure_truth_database, pending_truth_specs
@@ -33,7 +33,7 @@ def _render_figures(render_ids: list[str], reused: dict[str, Any], stores: dict[
                     ) -> dict[str, Any]:
     """Renderings and ABRDF images of every material in ``render_ids``: those in ``reused`` as they are,
     the others rendered from their reconstruction ``stores`` and stored under ``key`` (``figures.json``)."""
-    geometry = _geometry(materials[0])
+    geometry = material_geometry(materials[0])
     figures: dict[str, Any] = {}
     for mid in render_ids:
         if mid not in reused:
@@ -101,7 +101,7 @@ def evaluate_acquisition(db: str | os.PathLike, out_dir: str | os.PathLike, clie
               "material_scores": [sum(result["reused"].values()), len(materials)],
               "reconstructions": [n_recon - len(result["written"]) * len(strategy_names()), n_recon],
               "figures": [len(render_ids) - len(rendered), len(render_ids)]}
-    geometry = _geometry(materials[0])
+    geometry = material_geometry(materials[0])
     first = next(iter(result["materials"].values()))
     times = predicted_times(config.build_device(), first["sampling"])
     t0 = time.perf_counter()

@@ -38,11 +38,11 @@ def _setup(config, out, materials, material_id):
     from btfcore.acquisition.noise import SensorNoise
     from btfcore.acquisition.band_evaluation import moments_variance
     from tasks.evaluate_acquisition import band_maxima, band_variance, bands
-    from tasks.evaluate_acquisition.graph import (_gains, _geometry, _operators, _reduce_max, _with_pattern_gains,
+    from tasks.evaluate_acquisition.graph import (_gains, material_geometry, _operators, _reduce_max, _with_pattern_gains,
                                                   band_pattern_maxima)
 
     m = next(x for x in materials if x.material_id == material_id)
-    geometry = _geometry(m)
+    geometry = material_geometry(m)
     patterns = multiplexing_patterns(geometry.n_leds)
     noise = SensorNoise(fill=config.fill)
     seed = (0, 5)

@@ -34,7 +34,7 @@ def test_bands_measure_like_the_whole_texture(evaluated):
     from btfcore.acquisition.nonideal_measurement import noises_at_gains
     from tasks.evaluate_acquisition import band_maxima, bands, evaluate_band
     from tasks.evaluate_acquisition.graph import (
-        _dome_draws, _gains, _geometry, _operators, _reduce_max, _with_pattern_gains, band_pattern_maxima,
+        _dome_draws, _gains, material_geometry, _operators, _reduce_max, _with_pattern_gains, band_pattern_maxima,
         texels_per_px)
     from tasks.model import discover
 
@@ -42,7 +42,7 @@ def test_bands_measure_like_the_whole_texture(evaluated):
     config = runs["realistic"][0]
     materials = discover(out / "db")
     m = materials[0]
-    geometry = _geometry(m)
+    geometry = material_geometry(m)
     patterns = multiplexing_patterns(geometry.n_leds)
     noise = SensorNoise(fill=config.fill)
     noises = noises_at_gains(noise, config.non_ideal)
