@@ -27,6 +27,12 @@ a dome could execute, and OUT/plan.json holds all shots in acquisition order
 with the predicted time. OUT/report.json records every step (rows, predicted
 and true error); OUT/report.html plots error against shots beside the thesis'
 fixed random-swap samplings (n_s = 100/200/400 scaled) and the 7x7 parabolic map.
+A real dome closes the loop through the same plan files with --measured DIR
+instead of --truth: each run reads step k's shot from DIR/step_kkk.zarr (`btf
+ingest` of the capture of OUT/plans/step_kkk.json, used as ingested); where
+the next one is missing it writes that
+step's plan, prints what to capture and ingest, and stops; run the same command
+again once it is there (no true error, no fixed samplings).
 Resumable: OUT/journal.json records every finished step under a key of the
 inputs; the same command after a kill replays the recorded steps (measures their
 groups again, chooses none) and continues, with the outputs of an uninterrupted
@@ -44,8 +50,13 @@ def add_acquire_arguments(p: argparse.ArgumentParser) -> None:
                    help="stop when the predicted relative L2 error of log Y is at most E (a fraction: 0.2 = 20 %%)")
     p.add_argument("--budget", type=int, default=None, metavar="SHOTS",
                    help="most shots ((turntable, LED) groups) [default: all groups]")
-    p.add_argument("--truth", required=True, metavar="TRUTH_BTF",
-                   help="noise-free BTF store the simulator measures (rows (turntable, camera, LED))")
+    source = p.add_mutually_exclusive_group(required=True)
+    source.add_argument("--truth", metavar="TRUTH_BTF",
+                        help="noise-free BTF store the simulator measures (rows (turntable, camera, LED))")
+    source.add_argument("--measured", metavar="DIR",
+                        help="a dome's shots instead: DIR/step_NNN.zarr, `btf ingest` of the capture of "
+                             "OUT/plans/step_NNN.json (needs --device)")
+
     p.add_argument("--model", required=True, metavar="MODEL_DIR", help="output folder of `btf build-db`")
     p.add_argument("--class", dest="cls", required=True, metavar="CLS", help="material class of the ALS basis")
     p.add_argument("--device", default=None, choices=DEVICE_NAMES,
@@ -80,10 +91,20 @@ def run_acquire(args: argparse.Namespace) -> int:
                          "`btf sample` + `btf plan`)")
     if args.budget is not None and args.budget < 1:
         raise ValueError(f"--budget must be >= 1 shot, got {args.budget}")
+    if args.measured is not None and args.device is None:
+        raise ValueError("--measured needs --device: the dome whose plans the loop writes")
     doc = acquire_adaptive(args.truth, args.model, args.cls, args.out, target=args.target_error,
                            budget=args.budget, device_name=args.device, seed=args.seed, compare=not args.no_compare,
                            predictor=args.predictor, weighting=args.weighting, overwrite=args.overwrite,
-                           say=lambda line: say(line, not args.quiet), time_aware=args.time_aware)
+                           say=lambda line: say(line, not args.quiet), time_aware=args.time_aware,
+                           measured=args.measured)
+    if "waiting" in doc:
+        wait = doc["waiting"]
+        say(f"btf acquire: step {wait['step']} (turntable {wait['turntable']}, LED {wait['led']}): capture "
+            f"{wait['plan']} and ingest it with `btf ingest CAPTURE --out {wait['measurement']}`, then run this "
+            "command again", not args.quiet)
+        print(json.dumps({"command": "acquire", "out": args.out, **doc}, indent=2))
+        return 0
     rec = doc["record"]
     last = rec["steps"][-1]
     summary: dict[str, Any] = {

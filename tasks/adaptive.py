@@ -42,8 +42,9 @@ from btfcore.acquisition.time_model import TimeModelParams, predict_time
 from btfcore.dome import Device
 from btfcore.model.colour import REC709_LUMA
 
-__all__ = ["ADAPTIVE_VERSION", "JOURNAL", "acquire_key", "adaptive_plan", "adaptive_material", "evaluate_adaptive",
-           "fixed_curves", "open_journal", "simulated_measure", "write_adaptive_report"]
+__all__ = ["ADAPTIVE_VERSION", "JOURNAL", "AwaitingShot", "acquire_key", "adaptive_plan", "adaptive_material",
+           "evaluate_adaptive", "fixed_curves", "measured_executor", "open_journal", "simulated_measure",
+           "step_measurement", "write_adaptive_report"]
 
 #: Raised when the adaptive records' meaning changes (their reuse key includes it).
 ADAPTIVE_VERSION = 1
@@ -69,6 +70,59 @@ def simulated_measure(truth: np.ndarray, noise: SensorNoise, seed: Sequence[int]
         gain = exposure_gain(x.reshape(len(rows), -1).max(axis=1), noise)
         y = noisy_single(x[:, None], 0, (gain, gain), noise, [*seed, int(group)])[:, 0]
         return y, gain
+    return measure
+
+
+class AwaitingShot(Exception):
+    """A step's measurement is not there yet (:func:`measured_executor`): the dome has to take its shot."""
+
+    def __init__(self, step: int, group: int, path: Path) -> None:
+        super().__init__(f"step {step}: no measurement at {path}")
+        self.step, self.group, self.path = step, group, path
+
+
+def step_measurement(folder: Path, step: int) -> Path:
+    """Where the ingested shot of ``step`` is read from: ``FOLDER/step_NNN.zarr`` (a ``btf ingest`` output)."""
+    return Path(folder) / f"step_{step:03d}.zarr"
+
+
+def measured_executor(folder: Path, noise: SensorNoise) -> Any:
+    """``measure(group, rows) -> (measured (n_cam, n_tx, 3), gain (n_cam,))`` of a real dome's shots.
+
+    The ``k``-th call reads step ``k``'s measurement store (:func:`step_measurement`: ``btf ingest`` of the
+    capture of ``plans/step_NNN.json``), whose rows must be the group's single-light rows, taken as
+    ingested (no white-standard correction: the relative weights make the fit indifferent to one scale
+    for all rows, not to per-LED gains). The noise model's gain of each image is the electrons per unit of its
+    brightest value at the noise model's fill, as the simulator's ideal auto exposure sets it
+    (:func:`simulated_measure`). A missing store raises :class:`AwaitingShot`.
+    """
+    from tasks.stores.measurement import open_measurement_store, read_G
+
+    calls = [0]
+
+    def measure(group: int, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        path = step_measurement(folder, calls[0])
+        if not path.exists():
+            raise AwaitingShot(calls[0], group, path)
+        calls[0] += 1
+        store = open_measurement_store(path)
+        G = read_G(store).tocsr()
+        if np.any(np.diff(G.indptr) != 1):
+            raise ValueError(f"{path}: not a single-light shot (a row of G measures several LEDs); ingest the "
+                             "capture of this step's plan")
+        found = G.indices
+        if sorted(found.tolist()) != sorted(np.asarray(rows).tolist()):
+            raise ValueError(f"{path}: measures rows {sorted(found.tolist())}, but step {calls[0] - 1}'s group "
+                             f"{group} is rows {sorted(np.asarray(rows).tolist())}; ingest the capture of "
+                             f"plans/step_{calls[0] - 1:03d}.json there")
+        order = [int(np.flatnonzero(found == r)[0]) for r in rows]
+        y = np.asarray(store["measured"][...], dtype=np.float32)[order]
+        y = y.reshape(len(rows), -1, 3) / np.asarray(G.data, dtype=np.float32)[order, None, None]
+        bright = y.reshape(len(rows), -1).max(axis=1)
+        if not np.all(np.isfinite(y)) or np.any(bright <= 0):
+            raise ValueError(f"{path}: a row is dark, or holds NaN/Inf; check the shot's exposure and ingest it "
+                             "again")
+        return y, exposure_gain(bright, noise)
     return measure
 
 
@@ -148,14 +202,18 @@ def shot_times(device: Device, params: TimeModelParams | None = None) -> dict[st
             "move_s": float(params.turntable_move_s)}
 
 
-def adaptive_material(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, truth: np.ndarray, noise: SensorNoise,
-                      device: Device, *, target: float, budget: int, seed: int, light_dir: np.ndarray | None = None,
+def adaptive_material(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, truth: np.ndarray | None,
+                      noise: SensorNoise, device: Device, *, target: float, budget: int, seed: int,
+                      light_dir: np.ndarray | None = None,
                       view_dir: np.ndarray | None = None, sampling_steps: int = 1500, plans_dir: Path | None = None,
                       predictor: str = "posterior", weighting: str = "relative",
                       replay: Sequence[dict[str, Any]] = (),
                       on_record: Callable[[dict[str, Any], dict[str, Any] | None], None] | None = None,
-                      time_aware: bool = False) -> dict[str, Any]:
-    """The loop on one simulated material (truth ``(n_lv, h, w, 3)``), with the fixed samplings beside it.
+                      time_aware: bool = False, measure: Callable[..., Any] | None = None,
+                      n_tx: int | None = None) -> dict[str, Any]:
+    """The loop on one simulated material (truth ``(n_lv, h, w, 3)``), with the fixed samplings beside it;
+    or, with ``measure`` (:func:`measured_executor`: a dome's shots) and ``n_tx``, on measured shots
+    (``truth`` None: no true error, no fixed samplings).
 
     With ``plans_dir`` every step's shot is written there as ``step_NNN.json`` / ``.csv`` (a plan of one
     shot, with its predicted time). ``replay``: the records of the first steps of an earlier run of the
@@ -169,8 +227,9 @@ def adaptive_material(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, trut
     """
     from tasks.plan import write_plan
 
-    truth = np.asarray(truth, dtype=np.float32).reshape(truth.shape[0], -1, 3)
-    measure = simulated_measure(truth, noise, [seed, 0])
+    if truth is not None:
+        truth = np.asarray(truth, dtype=np.float32).reshape(truth.shape[0], -1, 3)
+        measure, n_tx = simulated_measure(truth, noise, [seed, 0]), truth.shape[1]
 
     def on_step(step: Any, _: np.ndarray) -> None:
         recorded = replay[step.step] if step.step < len(replay) else None
@@ -181,8 +240,9 @@ def adaptive_material(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, trut
         if on_record is not None:
             on_record(step.to_dict(), recorded)
 
-    result: AdaptiveResult = run_adaptive(U, sigma, geometry, noise, measure, n_tx=truth.shape[1], target=target,
-                                          budget=budget, seed=seed, score=truth_score(U, truth), on_step=on_step,
+    result: AdaptiveResult = run_adaptive(U, sigma, geometry, noise, measure, n_tx=int(n_tx), target=target,
+                                          budget=budget, seed=seed,
+                                          score=None if truth is None else truth_score(U, truth), on_step=on_step,
                                           predictor=predictor, weighting=weighting,
                                           replay=[int(s["group"]) for s in replay],
                                           **(shot_times(device) if time_aware else {}))
@@ -190,7 +250,7 @@ def adaptive_material(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, trut
     steps = [dict(s) for s in replay] + [s.to_dict() for s in result.steps[len(replay):]]
     record = {**result.to_dict(), "steps": steps, "pairs": group_pairs(result.groups, geometry.n_leds).tolist(),
               "predicted_time": predict_time(plan, TimeModelParams()).to_dict()}
-    if light_dir is not None and view_dir is not None:
+    if truth is not None and light_dir is not None and view_dir is not None:
         record["fixed"] = fixed_curves(U, sigma, geometry, truth, noise, light_dir, view_dir, seed, sampling_steps,
                                        weighting=weighting)
     return record
@@ -451,7 +511,7 @@ def acquire_adaptive(truth_path: str | os.PathLike, model_path: str | os.PathLik
                      device_name: str | None = None, seed: int = 0, compare: bool = True,
                      sampling_steps: int = 1500, predictor: str = "posterior", weighting: str = "relative",
                      overwrite: bool = False, say: Callable[[str], None] | None = None,
-                     time_aware: bool = False) -> dict[str, Any]:
+                     time_aware: bool = False, measured: str | os.PathLike | None = None) -> dict[str, Any]:
     """``btf acquire --adaptive`` on a simulated material: the loop on a truth BTF store, plans, report.
 
     Resumable (docs/adaptive-capture.md, "Resume"): every finished step is recorded in the journal
@@ -478,6 +538,12 @@ def acquire_adaptive(truth_path: str | os.PathLike, model_path: str | os.PathLik
     time_aware : bool
         Choose by expected reduction per second of the time model, a turntable move included
         (:func:`adaptive_material`), instead of per shot.
+    measured : path, optional
+        A real dome's loop instead of the simulator (``truth_path`` None): step ``k``'s shot is read from
+        ``MEASURED/step_kkk.zarr`` (:func:`measured_executor`), ``btf ingest`` of the capture of
+        ``OUT/plans/step_kkk.json``. Where it is missing the run writes that plan and returns
+        ``{"waiting": {...}}``; the next run replays the recorded steps from their stores and goes on.
+        No true error, no fixed samplings. ``device_name`` is required.
     say : callable, optional
         ``say(line)``: an info line (a resumed run says how many steps it replays).
 
@@ -493,39 +559,55 @@ def acquire_adaptive(truth_path: str | os.PathLike, model_path: str | os.PathLik
     from tasks.reconstruct import class_basis, check_sampling, open_model
     from tasks.report import write_json
     from tasks.stores.btf import open_btf_store
+    from tasks.stores.measurement import open_measurement_store
 
     if not 0 < target < 1:
         raise ValueError(f"--target-error {target} must lie in (0, 1): a relative L2 error of log Y (0.2 = 20 %)")
-    truth_store = open_btf_store(truth_path, produced_by="`btf evaluate acquisition` (its truth database)")
-    attrs = dict(truth_store.attrs)
-    n_lv, h, w, _ = truth_store.btf.shape
-    tcl = attrs.get("turntable_cameras_leds")
-    device = get_device(device_name or (attrs.get("evaluation") or {}).get("device") or "")  \
-        if (device_name or (attrs.get("evaluation") or {}).get("device")) else None
+    model = open_model(model_path)
+    U, sigma = class_basis(model, cls, "als", None, model_path)
+    if measured is None:
+        truth_store = open_btf_store(truth_path, produced_by="`btf evaluate acquisition` (its truth database)")
+        attrs = dict(truth_store.attrs)
+        n_lv, h, w, _ = truth_store.btf.shape
+        tcl = attrs.get("turntable_cameras_leds")
+        device_name = device_name or (attrs.get("evaluation") or {}).get("device")
+        where = truth_path
+    else:
+        truth_store, attrs, where = None, {}, measured
+        first = step_measurement(measured, 0)
+        h, w = open_measurement_store(first)["measured"].shape[1:3] if first.exists() else (1, 1)
+        n_lv, tcl = U.shape[0], None
+    device = get_device(device_name) if device_name else None
     if tcl is None and device is not None:
-        tcl = [device.n_turn, device.n_cam, device.n_leds]
+        tcl = [n_lv // (device.n_cam * device.n_leds), device.n_cam, device.n_leds]
     if tcl is None or int(np.prod(tcl)) != n_lv:
-        raise ValueError(f"{truth_path}: its {n_lv} rows are not (turntable, camera, LED) of a known layout "
+        raise ValueError(f"{where}: its {n_lv} rows are not (turntable, camera, LED) of a known layout "
                          f"(turntable_cameras_leds {tcl!r}); give --device of the dome that wrote it")
     geometry = Geometry(int(tcl[0]), int(tcl[1]), int(tcl[2]), h, w)
     if device is None:
-        raise ValueError(f"{truth_path}: no device recorded; give --device (the plans are written for it)")
+        raise ValueError(f"{where}: no device recorded; give --device (the plans are written for it)")
     if (device.n_cam, device.n_leds) != (geometry.n_cam, geometry.n_leds) or device.n_turn < geometry.n_turn:
         raise ValueError(f"--device {device.name}: {device.n_turn} x {device.n_cam} x {device.n_leds} does not hold "
-                         f"the store's {geometry.n_turn} x {geometry.n_cam} x {geometry.n_leds} rows")
+                         f"the {geometry.n_turn} x {geometry.n_cam} x {geometry.n_leds} rows of {where}")
     device = device.with_overrides(turntable_angle_deg=device.turntable_angle_deg[:geometry.n_turn])
-    model = open_model(model_path)
-    check_sampling(model, truth_store.group, truth_path)
-    U, sigma = class_basis(model, cls, "als", None, model_path)
-    truth = np.asarray(truth_store.btf[...], dtype=np.float32)
     noise = SensorNoise(float(device.sensor.full_well_e), float(device.sensor.read_noise_e))
+    if measured is None:
+        check_sampling(model, truth_store.group, truth_path)
+        truth, measure = np.asarray(truth_store.btf[...], dtype=np.float32), None
+        source = {"truth": truth_store.content_key or _array_digest(truth)}
+    else:
+        if step_measurement(measured, 0).exists():
+            check_sampling(model, open_measurement_store(step_measurement(measured, 0)), step_measurement(measured, 0))
+        truth, compare = None, False
+        measure = measured_executor(Path(measured), noise)
+        source = {"measured": str(Path(measured).resolve())}
     n_groups = geometry.n_turn * geometry.n_leds
     budget = min(budget or n_groups, n_groups)
-    inputs = {"version": ADAPTIVE_VERSION, "truth": truth_store.content_key or _array_digest(truth),
+    inputs = {"version": ADAPTIVE_VERSION, **source,
               "basis": _array_digest(U, sigma), "class": cls, "device": device.name,
-              "geometry": [geometry.n_turn, geometry.n_cam, geometry.n_leds, h, w], "target": target,
-              "budget": budget, "seed": seed, "predictor": predictor, "weighting": weighting, "compare": compare,
-              "sampling_steps": sampling_steps, **({"time_aware": True} if time_aware else {})}
+              "geometry": [geometry.n_turn, geometry.n_cam, geometry.n_leds, *([h, w] if measured is None else [])],
+              "target": target, "budget": budget, "seed": seed, "predictor": predictor, "weighting": weighting,
+              "compare": compare, "sampling_steps": sampling_steps, **({"time_aware": True} if time_aware else {})}
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     journal_path = out / JOURNAL
@@ -551,15 +633,26 @@ def acquire_adaptive(truth_path: str | os.PathLike, model_path: str | os.PathLik
         write_json(journal_path, journal)
         kill_point("chunk-done")                                # one more step on disk
 
-    rec = adaptive_material(U, sigma, geometry, truth, noise, device, target=target, budget=budget, seed=seed,
-                            light_dir=truth_store.light_dir if compare else None,
-                            view_dir=truth_store.view_dir if compare else None, sampling_steps=sampling_steps,
-                            plans_dir=out / "plans", predictor=predictor, weighting=weighting,
-                            replay=replay, on_record=on_record, time_aware=time_aware)
+    try:
+        rec = adaptive_material(U, sigma, geometry, truth, noise, device, target=target, budget=budget, seed=seed,
+                                light_dir=truth_store.light_dir if compare else None,
+                                view_dir=truth_store.view_dir if compare else None, sampling_steps=sampling_steps,
+                                plans_dir=out / "plans", predictor=predictor, weighting=weighting,
+                                replay=replay, on_record=on_record, time_aware=time_aware, measure=measure,
+                                n_tx=h * w)
+    except AwaitingShot as wait:                               # a dome's loop: the next shot is to be taken
+        plan = out / "plans" / f"step_{wait.step:03d}.json"
+        write_plan(adaptive_plan(device, [wait.group]), plan, plan.with_suffix(".csv"), device=device)
+        t, led = divmod(wait.group, geometry.n_leds)
+        return {"schema": "btf-adaptive-acquisition", "waiting": {
+            "step": wait.step, "turntable": int(t), "led": int(led), "plan": str(plan), "measurement": str(wait.path)},
+            "steps_done": len(journal["steps"]), "reused": {"steps": [len(replay), len(journal["steps"])]},
+            "finished_before": False}
     plan_doc = write_plan(adaptive_plan(device, rec["groups"]), out / "plan.json", out / "plan.csv", device=device)
-    material = (attrs.get("material") or {}).get("material_id") or Path(str(truth_path)).stem
+    material = (attrs.get("material") or {}).get("material_id") or Path(str(where)).stem
     summary = {"schema": "btf-adaptive-acquisition", "material": material, "class": cls, "target": target,
-               "truth": str(truth_path), "model": str(model_path), "device": device.name,
+               **({"truth": str(truth_path)} if measured is None else {"measured": str(measured)}),
+               "model": str(model_path), "device": device.name,
                "geometry": [geometry.n_turn, geometry.n_cam, geometry.n_leds], "record": rec,
                "predicted_time_s": plan_doc["predicted_time"]["total_s"]}
     paths = write_adaptive_report(out, summary)

@@ -85,3 +85,39 @@ def test_acquire_refuses_the_outputs_of_another_run_unless_overwrite(acquisition
     assert code == 0, err
     journal = json.loads((out / "journal.json").read_text())
     assert journal["finished"] and len(journal["steps"]) == json.loads(stdout)["shots"]
+
+
+def test_a_dome_closes_the_loop_through_the_plan_files(acquisition_evaluation, model_report, run_btf, tmp_path):
+    """`--measured`: each run writes the next step's plan and stops; the virtual dome executes the plan
+    (`btf simulate --plan`), `btf ingest` writes its measurement store where the loop reads it, and the next run
+    replays the finished steps from their stores and goes on, until the budget."""
+    out, measured = tmp_path / "acq", tmp_path / "measured"
+    loop = ("acquire", "--adaptive", "--target-error", "0.01", "--budget", "2", "--measured", measured, "--model",
+            model_report, "--class", "carpet", "--device", "tiny", "--out", out)
+    for step in range(2):
+        code, stdout, err = run_btf(*loop)
+        assert code == 0, err
+        wait = json.loads(stdout)["waiting"]
+        assert wait["step"] == step and f"capture {out / 'plans' / f'step_{step:03d}.json'}" in err
+        capture = tmp_path / f"capture-{step}"
+        code, _, err = run_btf("simulate", "--plan", wait["plan"], "--device", "tiny", "--materials", "1",
+                               "--classes", "carpet", "--seed", "5", "--texture-size", "8", "--out", capture)
+        assert code == 0, err
+        code, _, err = run_btf("ingest", capture / "000-carpet.zarr", "--out", wait["measurement"])
+        assert code == 0, err
+    code, stdout, err = run_btf(*loop)
+    assert code == 0, err
+    summary = json.loads(stdout)
+    # step 0 replayed from its store, step 1 measured now
+    assert summary["shots"] == 2 and summary["true_error"] is None and summary["reused"]["steps"] == [1, 2]
+    steps = json.loads((out / "report.json").read_text())["record"]["steps"]
+    for k, s in enumerate(steps):                  # each step measured what its plan file asked for
+        shot = json.loads((out / "plans" / f"step_{k:03d}.json").read_text())["shots"][0]
+        assert (shot["turntable"], shot["leds"]) == (s["turntable"], [s["led"]])
+        assert 0 < s["predicted"] < 10 and s["true"] is None
+    # a measurement of the wrong rows is named
+    wrong = tmp_path / "wrong"
+    wrong.mkdir()
+    (wrong / "step_000.zarr").symlink_to(measured / "step_001.zarr", target_is_directory=True)
+    code, _, err = run_btf(*loop[:7], wrong, *loop[8:-1], tmp_path / "acq-wrong")
+    assert code == 2 and "step_000.zarr: measures rows" in err and "plans/step_000.json" in err, err
