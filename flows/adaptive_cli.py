@@ -29,10 +29,10 @@ and true error); OUT/report.html plots error against shots beside the thesis'
 fixed random-swap samplings (n_s = 100/200/400 scaled) and the 7x7 parabolic map.
 A real dome closes the loop through the same plan files with --measured DIR
 instead of --truth: each run reads step k's shot from DIR/step_kkk.zarr (`btf
-ingest` of the capture of OUT/plans/step_kkk.json, used as ingested); where
-the next one is missing it writes that
-step's plan, prints what to capture and ingest, and stops; run the same command
-again once it is there (no true error, no fixed samplings).
+ingest` of the capture of OUT/plans/step_kkk.json; --white / --colour-matrix
+correct its rows as `btf reconstruct` does); where the next one is missing it
+writes that step's plan, prints what to capture and ingest, and stops; run the
+same command again once it is there (no true error, no fixed samplings).
 Resumable: OUT/journal.json records every finished step under a key of the
 inputs; the same command after a kill replays the recorded steps (measures their
 groups again, chooses none) and continues, with the outputs of an uninterrupted
@@ -57,6 +57,9 @@ def add_acquire_arguments(p: argparse.ArgumentParser) -> None:
                         help="a dome's shots instead: DIR/step_NNN.zarr, `btf ingest` of the capture of "
                              "OUT/plans/step_NNN.json (needs --device)")
 
+    from flows.arguments import add_calibration
+
+    add_calibration(p, " (with --measured)")
     p.add_argument("--model", required=True, metavar="MODEL_DIR", help="output folder of `btf build-db`")
     p.add_argument("--class", dest="cls", required=True, metavar="CLS", help="material class of the ALS basis")
     p.add_argument("--device", default=None, choices=DEVICE_NAMES,
@@ -93,11 +96,19 @@ def run_acquire(args: argparse.Namespace) -> int:
         raise ValueError(f"--budget must be >= 1 shot, got {args.budget}")
     if args.measured is not None and args.device is None:
         raise ValueError("--measured needs --device: the dome whose plans the loop writes")
+    calibration = None
+    if args.white is not None or args.colour_matrix is not None:
+        if args.measured is None:
+            raise ValueError("--white and --colour-matrix apply to --measured (the simulator's --truth is in the "
+                             "truth's unit already)")
+        from tasks.radiometric import load_calibration
+
+        calibration = load_calibration(args.white, args.white_albedo, args.colour_matrix)
     doc = acquire_adaptive(args.truth, args.model, args.cls, args.out, target=args.target_error,
                            budget=args.budget, device_name=args.device, seed=args.seed, compare=not args.no_compare,
                            predictor=args.predictor, weighting=args.weighting, overwrite=args.overwrite,
                            say=lambda line: say(line, not args.quiet), time_aware=args.time_aware,
-                           measured=args.measured)
+                           measured=args.measured, calibration=calibration)
     if "waiting" in doc:
         wait = doc["waiting"]
         say(f"btf acquire: step {wait['step']} (turntable {wait['turntable']}, LED {wait['led']}): capture "

@@ -141,7 +141,7 @@ def ingest(p: argparse.ArgumentParser) -> None:
     """The arguments of ``btf ingest``."""
     p.add_argument("capture", metavar="CAPTURE", help="capture store (.zarr)")
     p.add_argument("--out", required=True, metavar="BTF", help="BTF store to write (.zarr)")
-    _add_calibration(p)
+    add_calibration(p)
     p.add_argument("--overwrite", action="store_true",
                    help="recompute and replace the output at --out (kept until the new one is complete and checked)")
     p.add_argument("--keep-roi", action="store_true",
@@ -277,12 +277,12 @@ def reconstruct(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, metavar="BTF", help="BTF store to write (.zarr)")
     p.add_argument("--overwrite", action="store_true",
                    help="replace another store at --out once the new one is complete")
-    _add_calibration(p, " (for a model of corrected BTFs; the measurement store itself is uncorrected: "
+    add_calibration(p, " (for a model of corrected BTFs; the measurement store itself is uncorrected: "
                              "single-light rows are corrected before the solve, multiplexed rows get one operator "
                              "per colour channel)")
 
 
-def _add_calibration(p: argparse.ArgumentParser, note: str = "") -> None:
+def add_calibration(p: argparse.ArgumentParser, note: str = "") -> None:
     """``--white``, ``--white-albedo`` and ``--colour-matrix`` of ``btf ingest`` and ``btf reconstruct``."""
     p.add_argument("--white", default=None, metavar="WHITE_BTF",
                    help="radiometric correction: the uncorrected `btf ingest` output of a white-standard capture "

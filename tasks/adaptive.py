@@ -26,6 +26,7 @@ import json
 import os
 import shutil
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -86,13 +87,15 @@ def step_measurement(folder: Path, step: int) -> Path:
     return Path(folder) / f"step_{step:03d}.zarr"
 
 
-def measured_executor(folder: Path, noise: SensorNoise) -> Any:
+def measured_executor(folder: Path, noise: SensorNoise, correction: Any = None) -> Any:
     """``measure(group, rows) -> (measured (n_cam, n_tx, 3), gain (n_cam,))`` of a real dome's shots.
 
     The ``k``-th call reads step ``k``'s measurement store (:func:`step_measurement`: ``btf ingest`` of the
-    capture of ``plans/step_NNN.json``), whose rows must be the group's single-light rows, taken as
-    ingested (no white-standard correction: the relative weights make the fit indifferent to one scale
-    for all rows, not to per-LED gains). The noise model's gain of each image is the electrons per unit of its
+    capture of ``plans/step_NNN.json``), whose rows must be the group's single-light rows. With
+    ``correction`` (a :class:`tasks.reconstruct.RowCorrection` of the white standard's LED gains and the
+    colour matrix, as ``btf reconstruct`` corrects single-light rows) each row is divided by its LED's gain
+    and mapped by the matrix; without, rows are taken as ingested (the relative weights make the fit
+    indifferent to one scale for all rows, not to per-LED gains). The noise model's gain of each image is the electrons per unit of its
     brightest value at the noise model's fill, as the simulator's ideal auto exposure sets it
     (:func:`simulated_measure`). A missing store raises :class:`AwaitingShot`.
     """
@@ -118,6 +121,8 @@ def measured_executor(folder: Path, noise: SensorNoise) -> Any:
         order = [int(np.flatnonzero(found == r)[0]) for r in rows]
         y = np.asarray(store["measured"][...], dtype=np.float32)[order]
         y = y.reshape(len(rows), -1, 3) / np.asarray(G.data, dtype=np.float32)[order, None, None]
+        if correction is not None:
+            y = correction.rows(y, correction.gain[np.asarray(rows)])
         bright = y.reshape(len(rows), -1).max(axis=1)
         if not np.all(np.isfinite(y)) or np.any(bright <= 0):
             raise ValueError(f"{path}: a row is dark, or holds NaN/Inf; check the shot's exposure and ingest it "
@@ -506,63 +511,33 @@ def _check_replayed(step: dict[str, Any], recorded: dict[str, Any], journal: Pat
                              "over")
 
 
-def acquire_adaptive(truth_path: str | os.PathLike, model_path: str | os.PathLike, cls: str,
-                     out_dir: str | os.PathLike, *, target: float, budget: int | None = None,
-                     device_name: str | None = None, seed: int = 0, compare: bool = True,
-                     sampling_steps: int = 1500, predictor: str = "posterior", weighting: str = "relative",
-                     overwrite: bool = False, say: Callable[[str], None] | None = None,
-                     time_aware: bool = False, measured: str | os.PathLike | None = None) -> dict[str, Any]:
-    """``btf acquire --adaptive`` on a simulated material: the loop on a truth BTF store, plans, report.
+@dataclass
+class _Loop:
+    """What :func:`acquire_adaptive` runs the loop with (:func:`_loop_setup`)."""
 
-    Resumable (docs/adaptive-capture.md, "Resume"): every finished step is recorded in the journal
-    ``OUT/journal.json`` (:func:`open_journal`), keyed by :func:`acquire_key` of the inputs; a rerun
-    with the same inputs replays the recorded steps (measures their groups again, chooses nothing) and
-    continues, and its outputs equal an uninterrupted run's; a finished run's rerun only reads its report.
+    U: np.ndarray
+    sigma: np.ndarray
+    geometry: Geometry
+    device: Device
+    noise: SensorNoise
+    truth: np.ndarray | None
+    truth_store: Any
+    measure: Any
+    source: dict[str, Any]
+    where: Any
+    attrs: dict[str, Any]
+    texture_shape: tuple[int, int]
 
-    Parameters
-    ----------
-    truth_path : path
-        A noise-free ``btf-texture`` store (e.g. of ``btf evaluate acquisition``'s truth database), rows
-        ``(turntable, camera, light)``; its ``turntable_cameras_leds`` (or ``device_name``) gives the groups.
-    model_path : path
-        ``btf build-db``'s output; the class ``cls``'s ALS basis (paper 4) is used.
-    out_dir : path
-        ``report.json``, ``report.html``, ``plans/step_NNN.json`` (one shot each), ``plan.json`` (all
-        shots in acquisition order, with the predicted time), ``journal.json`` (the finished steps).
-    target : float
-        Stop when the predicted relative L2 error of log Y is at most this (a fraction).
-    budget : int, optional
-        Most shots (default: every (turntable, LED) group).
-    overwrite : bool
-        Discard the steps and outputs of a run of other inputs at ``out_dir`` (else refused).
-    time_aware : bool
-        Choose by expected reduction per second of the time model, a turntable move included
-        (:func:`adaptive_material`), instead of per shot.
-    measured : path, optional
-        A real dome's loop instead of the simulator (``truth_path`` None): step ``k``'s shot is read from
-        ``MEASURED/step_kkk.zarr`` (:func:`measured_executor`), ``btf ingest`` of the capture of
-        ``OUT/plans/step_kkk.json``. Where it is missing the run writes that plan and returns
-        ``{"waiting": {...}}``; the next run replays the recorded steps from their stores and goes on.
-        No true error, no fixed samplings. ``device_name`` is required.
-    say : callable, optional
-        ``say(line)``: an info line (a resumed run says how many steps it replays).
 
-    Returns
-    -------
-    doc : dict
-        ``report.json``'s document with ``report_json`` and ``report_html`` (the paths), ``reused``
-        (``{"steps": [replayed, total]}``) and ``finished_before`` (a finished run's rerun).
-    """
+def _loop_setup(truth_path: Any, measured: Any, model_path: Any, cls: str, device_name: str | None,
+                calibration: Any) -> _Loop:
+    """The basis, geometry, device, noise and executor of a ``btf acquire`` run: the simulator on ``truth_path``
+    or a dome's shots in ``measured`` (:func:`measured_executor`); every input checked, named in the errors."""
     from btfcore.dome import get_device
-    from tasks.faults import kill_point
-    from tasks.plan import write_plan
-    from tasks.reconstruct import class_basis, check_sampling, open_model
-    from tasks.report import write_json
+    from tasks.reconstruct import RowCorrection, class_basis, check_sampling, open_model
     from tasks.stores.btf import open_btf_store
     from tasks.stores.measurement import open_measurement_store
 
-    if not 0 < target < 1:
-        raise ValueError(f"--target-error {target} must lie in (0, 1): a relative L2 error of log Y (0.2 = 20 %)")
     model = open_model(model_path)
     U, sigma = class_basis(model, cls, "als", None, model_path)
     if measured is None:
@@ -598,12 +573,80 @@ def acquire_adaptive(truth_path: str | os.PathLike, model_path: str | os.PathLik
     else:
         if step_measurement(measured, 0).exists():
             check_sampling(model, open_measurement_store(step_measurement(measured, 0)), step_measurement(measured, 0))
-        truth, compare = None, False
-        measure = measured_executor(Path(measured), noise)
-        source = {"measured": str(Path(measured).resolve())}
+        truth = None
+        correction = None if calibration is None else \
+            RowCorrection.of(calibration.led_gain, calibration.colour_matrix, None, n_lv)
+        measure = measured_executor(Path(measured), noise, correction)
+        source = {"measured": str(Path(measured).resolve()),
+                  **({"calibration": _array_digest(correction.gain, *([] if correction.matrix is None else
+                                                                        [correction.matrix]))} if correction else {})}
+    return _Loop(U, sigma, geometry, device, noise, truth, truth_store, measure, source, where, attrs, (h, w))
+
+
+def acquire_adaptive(truth_path: str | os.PathLike, model_path: str | os.PathLike, cls: str,
+                     out_dir: str | os.PathLike, *, target: float, budget: int | None = None,
+                     device_name: str | None = None, seed: int = 0, compare: bool = True,
+                     sampling_steps: int = 1500, predictor: str = "posterior", weighting: str = "relative",
+                     overwrite: bool = False, say: Callable[[str], None] | None = None,
+                     time_aware: bool = False, measured: str | os.PathLike | None = None,
+                     calibration: Any = None) -> dict[str, Any]:
+    """``btf acquire --adaptive`` on a simulated material: the loop on a truth BTF store, plans, report.
+
+    Resumable (docs/adaptive-capture.md, "Resume"): every finished step is recorded in the journal
+    ``OUT/journal.json`` (:func:`open_journal`), keyed by :func:`acquire_key` of the inputs; a rerun
+    with the same inputs replays the recorded steps (measures their groups again, chooses nothing) and
+    continues, and its outputs equal an uninterrupted run's; a finished run's rerun only reads its report.
+
+    Parameters
+    ----------
+    truth_path : path
+        A noise-free ``btf-texture`` store (e.g. of ``btf evaluate acquisition``'s truth database), rows
+        ``(turntable, camera, light)``; its ``turntable_cameras_leds`` (or ``device_name``) gives the groups.
+    model_path : path
+        ``btf build-db``'s output; the class ``cls``'s ALS basis (paper 4) is used.
+    out_dir : path
+        ``report.json``, ``report.html``, ``plans/step_NNN.json`` (one shot each), ``plan.json`` (all
+        shots in acquisition order, with the predicted time), ``journal.json`` (the finished steps).
+    target : float
+        Stop when the predicted relative L2 error of log Y is at most this (a fraction).
+    budget : int, optional
+        Most shots (default: every (turntable, LED) group).
+    overwrite : bool
+        Discard the steps and outputs of a run of other inputs at ``out_dir`` (else refused).
+    time_aware : bool
+        Choose by expected reduction per second of the time model, a turntable move included
+        (:func:`adaptive_material`), instead of per shot.
+    measured : path, optional
+        A real dome's loop instead of the simulator (``truth_path`` None): step ``k``'s shot is read from
+        ``MEASURED/step_kkk.zarr`` (:func:`measured_executor`), ``btf ingest`` of the capture of
+        ``OUT/plans/step_kkk.json``. Where it is missing the run writes that plan and returns
+        ``{"waiting": {...}}``; the next run replays the recorded steps from their stores and goes on.
+        No true error, no fixed samplings. ``device_name`` is required.
+    calibration : tasks.radiometric.Calibration, optional
+        With ``measured``: the white standard's LED gains and the colour matrix the rows are corrected by.
+    say : callable, optional
+        ``say(line)``: an info line (a resumed run says how many steps it replays).
+
+    Returns
+    -------
+    doc : dict
+        ``report.json``'s document with ``report_json`` and ``report_html`` (the paths), ``reused``
+        (``{"steps": [replayed, total]}``) and ``finished_before`` (a finished run's rerun).
+    """
+    from tasks.faults import kill_point
+    from tasks.plan import write_plan
+    from tasks.report import write_json
+
+    if not 0 < target < 1:
+        raise ValueError(f"--target-error {target} must lie in (0, 1): a relative L2 error of log Y (0.2 = 20 %)")
+    loop = _loop_setup(truth_path, measured, model_path, cls, device_name, calibration)
+    U, sigma, geometry, device, noise = loop.U, loop.sigma, loop.geometry, loop.device, loop.noise
+    truth, truth_store, measure, where, attrs, (h, w) = (loop.truth, loop.truth_store, loop.measure, loop.where,
+                                                         loop.attrs, loop.texture_shape)
+    compare = compare and truth is not None
     n_groups = geometry.n_turn * geometry.n_leds
     budget = min(budget or n_groups, n_groups)
-    inputs = {"version": ADAPTIVE_VERSION, **source,
+    inputs = {"version": ADAPTIVE_VERSION, **loop.source,
               "basis": _array_digest(U, sigma), "class": cls, "device": device.name,
               "geometry": [geometry.n_turn, geometry.n_cam, geometry.n_leds, *([h, w] if measured is None else [])],
               "target": target, "budget": budget, "seed": seed, "predictor": predictor, "weighting": weighting,

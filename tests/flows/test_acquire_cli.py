@@ -115,6 +115,29 @@ def test_a_dome_closes_the_loop_through_the_plan_files(acquisition_evaluation, m
         shot = json.loads((out / "plans" / f"step_{k:03d}.json").read_text())["shots"][0]
         assert (shot["turntable"], shot["leds"]) == (s["turntable"], [s["led"]])
         assert 0 < s["predicted"] < 10 and s["true"] is None
+    # --white's correction (tasks.reconstruct.RowCorrection, as `btf reconstruct` applies it): each row divided by
+    # its LED's gain, then the colour matrix
+    import numpy as np
+
+    from btfcore.acquisition.noise import SensorNoise
+    from tasks.adaptive import measured_executor
+    from tasks.reconstruct import RowCorrection
+
+    rows = np.asarray([(steps[0]["turntable"] * 4 + c) * 16 + steps[0]["led"] for c in range(4)])
+    led_gain = np.linspace(0.5, 2.0, 16 * 3).reshape(16, 3)
+    matrix = np.array([[1.0, 0.1, 0.0], [0.0, 0.9, 0.0], [0.0, 0.2, 1.1]])
+    noise = SensorNoise(1e4, 5.0)
+    plain, _ = measured_executor(measured, noise)(steps[0]["group"], rows)
+    corrected, _ = measured_executor(measured, noise, RowCorrection.of(led_gain, matrix, None, 192))(
+        steps[0]["group"], rows)
+    want = (plain / led_gain[steps[0]["led"]]) @ matrix.T
+    np.testing.assert_allclose(corrected, want, rtol=1e-5)
+    code, _, err = run_btf(*loop[:8], "--white", measured / "step_000.zarr", *loop[8:])   # not a white standard
+    assert code == 2 and str(measured / "step_000.zarr") in err and "Traceback" not in err, err
+    code, _, err = run_btf("acquire", "--adaptive", "--target-error", "0.1", "--truth", measured, "--model",
+                           model_report, "--class", "carpet", "--white", measured / "step_000.zarr", "--out",
+                           tmp_path / "x")
+    assert code == 2 and "--white and --colour-matrix apply to --measured" in err, err
     # a measurement of the wrong rows is named
     wrong = tmp_path / "wrong"
     wrong.mkdir()
