@@ -42,8 +42,9 @@ from btfcore.acquisition.strategies import THESIS_N_S, Geometry, row_groups, sca
 from btfcore.acquisition.time_model import TimeModelParams, predict_time
 from btfcore.dome import Device
 from btfcore.model.colour import REC709_LUMA
+from tasks.stores.common import json_key
 
-__all__ = ["ADAPTIVE_VERSION", "JOURNAL", "AwaitingShot", "acquire_key", "adaptive_plan", "adaptive_material",
+__all__ = ["ADAPTIVE_VERSION", "JOURNAL", "AwaitingShot", "adaptive_plan", "adaptive_material",
            "evaluate_adaptive", "fixed_curves", "measured_executor", "open_journal", "simulated_measure",
            "step_measurement", "write_adaptive_report"]
 
@@ -95,9 +96,9 @@ def measured_executor(folder: Path, noise: SensorNoise, correction: Any = None) 
     ``correction`` (a :class:`tasks.reconstruct.RowCorrection` of the white standard's LED gains and the
     colour matrix, as ``btf reconstruct`` corrects single-light rows) each row is divided by its LED's gain
     and mapped by the matrix; without, rows are taken as ingested (the relative weights make the fit
-    indifferent to one scale for all rows, not to per-LED gains). The noise model's gain of each image is the electrons per unit of its
-    brightest value at the noise model's fill, as the simulator's ideal auto exposure sets it
-    (:func:`simulated_measure`). A missing store raises :class:`AwaitingShot`.
+    indifferent to one scale for all rows, not to per-LED gains). The noise model's gain of each image is
+    the electrons per unit of its brightest value at the noise model's fill, as the simulator's ideal auto
+    exposure sets it (:func:`simulated_measure`). A missing store raises :class:`AwaitingShot`.
     """
     from tasks.stores.measurement import open_measurement_store, read_G
 
@@ -437,11 +438,6 @@ def adaptive_bars(records: dict[str, dict[str, Any]], structured: Sequence[str] 
 # --------------------------------------------------------------------------- btf acquire --adaptive
 
 
-def acquire_key(inputs: dict[str, Any]) -> str:
-    """The key of a ``btf acquire --adaptive`` run: a hash of everything its steps and outputs depend on."""
-    return hashlib.sha256(json.dumps(inputs, sort_keys=True).encode()).hexdigest()[:16]
-
-
 def _array_digest(*arrays: np.ndarray) -> str:
     digest = hashlib.sha256()
     for a in arrays:
@@ -550,7 +546,8 @@ def _loop_setup(truth_path: Any, measured: Any, model_path: Any, cls: str, devic
     else:
         truth_store, attrs, where = None, {}, measured
         first = step_measurement(measured, 0)
-        h, w = open_measurement_store(first)["measured"].shape[1:3] if first.exists() else (1, 1)
+        first_store = open_measurement_store(first) if first.exists() else None
+        h, w = (1, 1) if first_store is None else first_store["measured"].shape[1:3]
         n_lv, tcl = U.shape[0], None
     device = get_device(device_name) if device_name else None
     if tcl is None and device is not None:
@@ -571,15 +568,14 @@ def _loop_setup(truth_path: Any, measured: Any, model_path: Any, cls: str, devic
         truth, measure = np.asarray(truth_store.btf[...], dtype=np.float32), None
         source = {"truth": truth_store.content_key or _array_digest(truth)}
     else:
-        if step_measurement(measured, 0).exists():
-            check_sampling(model, open_measurement_store(step_measurement(measured, 0)), step_measurement(measured, 0))
+        if first_store is not None:
+            check_sampling(model, first_store, first)
         truth = None
         correction = None if calibration is None else \
             RowCorrection.of(calibration.led_gain, calibration.colour_matrix, None, n_lv)
         measure = measured_executor(Path(measured), noise, correction)
         source = {"measured": str(Path(measured).resolve()),
-                  **({"calibration": _array_digest(correction.gain, *([] if correction.matrix is None else
-                                                                        [correction.matrix]))} if correction else {})}
+                  **({"calibration": calibration.key()} if calibration is not None else {})}
     return _Loop(U, sigma, geometry, device, noise, truth, truth_store, measure, source, where, attrs, (h, w))
 
 
@@ -593,7 +589,7 @@ def acquire_adaptive(truth_path: str | os.PathLike, model_path: str | os.PathLik
     """``btf acquire --adaptive`` on a simulated material: the loop on a truth BTF store, plans, report.
 
     Resumable (docs/adaptive-capture.md, "Resume"): every finished step is recorded in the journal
-    ``OUT/journal.json`` (:func:`open_journal`), keyed by :func:`acquire_key` of the inputs; a rerun
+    ``OUT/journal.json`` (:func:`open_journal`), keyed by the inputs' :func:`~tasks.stores.common.json_key`; a rerun
     with the same inputs replays the recorded steps (measures their groups again, chooses nothing) and
     continues, and its outputs equal an uninterrupted run's; a finished run's rerun only reads its report.
 
@@ -654,7 +650,7 @@ def acquire_adaptive(truth_path: str | os.PathLike, model_path: str | os.PathLik
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     journal_path = out / JOURNAL
-    journal = open_journal(out, acquire_key(inputs), inputs, overwrite)
+    journal = open_journal(out, json_key(inputs), inputs, overwrite)
     replay = list(journal["steps"])                            # the steps a killed run finished
     if journal["finished"] and all((out / name).exists() for name in ACQUIRE_OUTPUTS):
         doc = json.loads((out / "report.json").read_text())      # a finished run: nothing to do

@@ -41,8 +41,6 @@ demultiplexed, ``btf reconstruct`` solves for the BTF.
 
 from __future__ import annotations
 
-import hashlib
-import json
 import os
 import threading
 import time
@@ -77,6 +75,7 @@ from tasks.stores.btf import (
     create_btf_store,
     open_btf_store,
 )
+from tasks.stores.common import json_key
 from tasks.stores.measurement import SCHEMA_NAME as MEASUREMENT_SCHEMA
 from tasks.stores.measurement import measurement_target
 
@@ -107,7 +106,7 @@ def ingest_hash(capture: CaptureStore, settings: IngestSettings, calibration: Ca
                "calibration": None if calibration is None else calibration.key()}
     if keep_roi:
         payload["keep_roi"] = True
-    return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:16]
+    return json_key(payload)
 
 
 def _ingest_target(out: Path, key: str, overwrite: bool, keep_roi: bool = False) -> tuple[Path, bool]:

@@ -45,11 +45,9 @@ from tasks.compute import run_all
 from tasks.stores import (
     CaptureMetadata,
     CaptureStore,
-    capture_target,
     commit_capture,
     create_capture_store,
-    finished_capture,
-    open_capture_store,
+    reusable_capture,
 )
 from tasks.stores.common import to_json_attr
 
@@ -631,9 +629,7 @@ def import_raw(plan: RawImportPlan, device: Device, out: str | os.PathLike, clie
     ``(n_cam, n_codes, 3)`` (written to the store with ``response_info``).
     """
     meta = raw_import_metadata(plan, device, provenance) if meta is None else meta
-    key = meta.provenance["config_hash"]
-    target, fresh = capture_target(out, key, overwrite)
-    done = finished_capture(out, key) if target == out and not fresh else None
+    done = reusable_capture(out, meta.provenance["config_hash"], overwrite)
     if done is not None:                  # a finished import of the same files and calibration
         return done
     store = create_capture_store(out, meta, overwrite=overwrite)

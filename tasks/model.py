@@ -64,6 +64,7 @@ from tasks.staging import (
 )
 from tasks.stores import to_json_attr
 from tasks.stores.btf import SCHEMA_NAME as BTF_SCHEMA_NAME
+from tasks.stores.common import json_key
 
 SCHEMA_NAME = "btf-model"
 SCHEMA_VERSION = "1.0"
@@ -100,14 +101,10 @@ class ModelSettings:
     seed: int = 0
 
     def key(self) -> str:
-        return _hash(asdict(self))
+        return json_key(asdict(self))
 
 
 THESIS_K = {"log_y": 200, "u_y": 100, "v_y": 100, "abtf_log_y": 200, "als": 64, LINEAR_SVD: 64, "merged": 2048}
-
-
-def _hash(payload: Any) -> str:
-    return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
 def _choose_k(requested: int | None, default: int, limit: int, what: str) -> int:
@@ -273,8 +270,8 @@ def blocks(path: str, basis: str, patch: int = 3, max_bytes: int | None = None
 
     bands = _bands(btf, multiple, max_bytes)
     # read (and convert) the next band while the caller computes on this one, where two bands fit
-    ahead = max_bytes is None or 2 * 4 * n_lv * max((r1 - r0 for r0, r1 in bands), default=0) * int(np.prod(btf.shape[2:])) \
-        <= max_bytes
+    band_bytes = 4 * n_lv * max((r1 - r0 for r0, r1 in bands), default=0) * int(np.prod(btf.shape[2:]))
+    ahead = max_bytes is None or 2 * band_bytes <= max_bytes
 
     def read() -> Iterator[np.ndarray]:
         if not ahead:
@@ -437,7 +434,7 @@ def stored_key(group: zarr.Group, where: str) -> str | None:
 
 
 def material_key(material: Material, basis: str, settings: ModelSettings) -> str:
-    return _hash({"ingest_hash": material.ingest_hash, "basis": basis, "settings": settings.key()})
+    return json_key({"ingest_hash": material.ingest_hash, "basis": basis, "settings": settings.key()})
 
 
 def fit_material(model_path: str, material: Material, settings: ModelSettings,
@@ -535,7 +532,7 @@ def _fit_als(material: Material, c: int, settings: ModelSettings) -> TruncatedSV
 
 
 def merge_key(keys: Sequence[str], k: int) -> str:
-    return _hash({"members": sorted(keys), "k": k})
+    return json_key({"members": sorted(keys), "k": k})
 
 
 def merge_bases(group: zarr.Group, materials: Sequence[Material], settings: ModelSettings,

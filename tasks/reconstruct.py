@@ -34,8 +34,6 @@ See docs/measurement-store.md.
 
 from __future__ import annotations
 
-import hashlib
-import json
 import os
 import shutil
 import time
@@ -73,6 +71,7 @@ from tasks.faults import kill_point
 from tasks.staging import commit_staged, finish_interrupted_commit, staging_path, store_attrs
 from tasks.stores.btf import LV_ORDER, SCHEMA_NAME, SCHEMA_VERSION, BtfStore, create_btf_store, open_btf_store
 from tasks.stores.btf import band_rows as btf_band_rows
+from tasks.stores.common import json_key
 from tasks.stores.measurement import SCHEMA_NAME as MEASUREMENT_SCHEMA
 from tasks.stores.measurement import open_measurement_store, read_G
 
@@ -213,7 +212,8 @@ def _check_class(model: zarr.Group, cls: str, names: tuple[str, ...], model_path
                          "what the class has, or build the model with that basis")
 
 
-def class_basis(model: zarr.Group, cls: str, name: str, k: int | None, model_path: Any) -> tuple[np.ndarray, np.ndarray]:
+def class_basis(model: zarr.Group, cls: str, name: str, k: int | None,
+                model_path: Any) -> tuple[np.ndarray, np.ndarray]:
     """The class ``cls``'s basis ``name`` of the opened model store: ``U (n_lv, k)`` and ``sigma (k,)``, its first
     ``k`` vectors (all for ``None``); a class or basis the store lacks, or ``k`` above its size, is refused
     naming ``model_path`` and what it holds."""
@@ -511,7 +511,7 @@ def reconstruct_hash(data: zarr.Group, model: zarr.Group, settings: ReconstructS
     payload = {"input": data.attrs.get("ingest_hash") or data.attrs.get("reconstruct_hash"), "bases": keys,
                "rows_id": model.attrs.get("rows_id"), "settings": asdict(settings), "schema": f"{SCHEMA_NAME}/{SCHEMA_VERSION}",
                "band": band, "calibration": None if calibration is None else calibration.key()}
-    return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:16]
+    return json_key(payload)
 
 
 def _create_output(path: Path, data: zarr.Group, key: str, attrs: dict[str, Any], n_bands: int, band: int

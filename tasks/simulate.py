@@ -12,8 +12,6 @@ order on any worker and a killed run resumes with the views still pending.
 
 from __future__ import annotations
 
-import hashlib
-import json
 import time
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
@@ -44,14 +42,14 @@ from btfcore.simulate.sensor import choose_bracket, dark_current_map, dark_frame
 from tasks.stores import (
     CaptureMetadata,
     CaptureStore,
-    capture_target,
     check_capture_target,
     commit_capture,
     create_capture_store,
-    finished_capture,
     open_capture_store,
+    reusable_capture,
 )
 from tasks.report import write_json
+from tasks.stores.common import json_key
 from tasks.textures import load_texture_sources
 
 ILLUMINATIONS = ("single", "multiplexed", "both")
@@ -240,7 +238,7 @@ def code_version() -> str:
 def config_hash(config: SimulationConfig, spec: MaterialSpec) -> str:
     """SHA-256 of everything that determines one material's store."""
     payload = {"config": config.to_json(), "material": asdict(spec), "schema": "btf-capture/1.0"}
-    return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:16]
+    return json_key(payload)
 
 
 def capture_metadata(config: SimulationConfig, spec: MaterialSpec, device: Device) -> CaptureMetadata:
@@ -580,8 +578,7 @@ def simulate_database(config: SimulationConfig, out_dir: str | Path, client: Any
     futures, stores, skipped, records = [], [], 0, []
     for spec in material_plan(config):
         path = out_dir / f"{spec.material_id}.zarr"
-        target, fresh = capture_target(path, config_hash(config, spec), overwrite)
-        store = finished_capture(path, config_hash(config, spec)) if target == path and not fresh else None
+        store = reusable_capture(path, config_hash(config, spec), overwrite)
         if store is None:        # new, resumed, or (overwrite) built beside the old store until complete
             store = create_capture_store(path, capture_metadata(config, spec, device), with_truth=True,
                                          overwrite=overwrite)

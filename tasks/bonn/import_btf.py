@@ -21,7 +21,6 @@ finished output is replaced (``overwrite``) only by a complete one built beside 
 from __future__ import annotations
 
 import hashlib
-import json
 import math
 import mmap
 import os
@@ -52,6 +51,7 @@ from tasks.stores.btf import (
     band_rows,
     create_btf_store,
 )
+from tasks.stores.common import json_key
 
 __all__ = [
     "BLOCK_BYTES",
@@ -325,7 +325,7 @@ _HASHES: dict[tuple, str] = {}
 def import_hash(sha256: str) -> str:
     """What an imported store depends on: the file's SHA-256, :data:`DECODER_VERSION` and the schema."""
     payload = {"file_sha256": sha256, "decoder": DECODER_VERSION, "schema": f"{SCHEMA_NAME}/{SCHEMA_VERSION}"}
-    return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:16]
+    return json_key(payload)
 
 
 def _plain(value: Any) -> Any:

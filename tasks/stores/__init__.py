@@ -25,6 +25,7 @@ from tasks.stores.capture import (
     create_capture_store,
     finished_capture,
     open_capture_store,
+    reusable_capture,
     validate_capture_store,
 )
 from tasks.stores.capture import SCHEMA_NAME as CAPTURE_SCHEMA_NAME
@@ -50,6 +51,7 @@ __all__ = [
     "create_capture_store",
     "finished_capture",
     "open_capture_store",
+    "reusable_capture",
     "to_json_attr",
     "validate_capture_store",
     "write_chunk_aligned",

@@ -86,6 +86,7 @@ __all__ = [
     "create_capture_store",
     "finished_capture",
     "open_capture_store",
+    "reusable_capture",
     "validate_capture_store",
 ]
 
@@ -230,7 +231,7 @@ def create_capture_store(
     assert attrs is not None
     target, fresh = capture_target(path, attrs["provenance"]["config_hash"], overwrite)
     if not fresh:
-        if target != path and store_attrs(target).get("complete"):
+        if os.fspath(target) != os.fspath(path) and store_attrs(target).get("complete"):
             return CaptureStore(target, "r+")           # a replacement killed before its commit
         existing = _existing_store(target, meta, attrs, with_truth)
         if existing is not None:
@@ -278,6 +279,15 @@ def finished_capture(path: str | os.PathLike, key: str) -> CaptureStore | None:
     except Exception:  # noqa: BLE001 - anything else at path is for the caller's checks to name
         return None
     return store if (store.attrs.get("provenance") or {}).get("config_hash") == key else None
+
+
+def reusable_capture(path: str | os.PathLike, key: str, overwrite: bool) -> CaptureStore | None:
+    """The complete capture of config ``key`` at ``path`` that a run leaves alone (finished work), else
+    ``None``: the run has views to write (a new, unfinished or staged store, or ``overwrite``).
+    An interrupted commit into ``path`` is finished first (:func:`capture_target`)."""
+    target, fresh = capture_target(path, key, overwrite)
+    same = os.fspath(target) == os.fspath(path)
+    return finished_capture(path, key) if same and not fresh else None
 
 
 def _staged_replacement(path: str | os.PathLike, key: str) -> bool:

@@ -8,6 +8,8 @@ subclass of :class:`StoreProblemsError`.
 
 from __future__ import annotations
 
+import hashlib
+import json
 import math
 import os
 from collections.abc import Mapping, Sequence
@@ -256,3 +258,10 @@ def root_attr_problems(attrs: Mapping[str, Any], required: Sequence[str], schema
                                 f"this code reads {schema} {version}; use the btf-pipeline version that wrote the "
                                 "store or write it again"))
     return problems
+
+
+def json_key(payload: Any) -> str:
+    """The content key of a plain-JSON ``payload``: the first 16 hex digits of the SHA-256 of its JSON with
+    sorted keys (values JSON cannot hold by their ``str``). Every stage's resumption key (``ingest_hash``,
+    ``config_hash``, a basis' ``key``, ...) is one."""
+    return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()[:16]

@@ -26,7 +26,6 @@ The computation that fills a store is :mod:`tasks.measurement`.
 from __future__ import annotations
 
 import hashlib
-import json
 import os
 from dataclasses import asdict
 from pathlib import Path
@@ -41,6 +40,7 @@ from tasks.staging import begin_store, finish_store, staged_target, staging_path
 from tasks.stores.btf import UNIT_TOL, band_rows
 from tasks.stores.capture import CaptureStore
 from tasks.stores.common import (
+    json_key,
     ROOT_ATTRS,
     WHOLE_STORE,
     Problem,
@@ -98,7 +98,7 @@ def plan_summary(plan: dict[str, Any] | None) -> dict[str, Any] | None:
     """A small record of a plan dict (strategy, device, shots, its SHA-256) for attributes."""
     if not plan:
         return None
-    digest = hashlib.sha256(json.dumps(plan, sort_keys=True).encode()).hexdigest()[:16]
+    digest = json_key(plan)
     return {"strategy": plan.get("strategy"), "device": plan.get("device"), "n_shots": len(plan.get("shots", [])),
             "parameters": plan.get("parameters", {}), "sha256": digest}
 
@@ -157,7 +157,7 @@ def measurement_hash(capture: CaptureStore, settings: IngestSettings) -> str:
     """What a measurement store depends on: the capture's config hash and the ingest settings."""
     payload = {"capture": capture.group.attrs.get("provenance", {}).get("config_hash"),
                "settings": asdict(settings), "schema": f"{SCHEMA_NAME}/{SCHEMA_VERSION}"}
-    return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:16]
+    return json_key(payload)
 
 
 def create_measurement_store(path: str | os.PathLike, capture: CaptureStore, settings: IngestSettings, *,
