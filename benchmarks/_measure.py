@@ -116,14 +116,26 @@ def gemm_rate(m: int, kk: int, n: int, repeats: int = 3) -> float:
     return 2.0 * m * kk * n / best_seconds(lambda: np.matmul(A, B, out=C), repeats) / 1e9
 
 
-def torch_gemm_rate(n: int = 2048, repeats: int = 3) -> float:
-    """GFLOP/s of a float32 torch ``(n, n) @ (n, n)`` GEMM at torch's current thread count, best of ``repeats``."""
+def torch_gemm_rate(m: int = 2048, k: int | None = None, n: int | None = None, repeats: int = 3, *,
+                    transpose_a: bool = False, device: str = "cpu") -> float:
+    """GFLOP/s of a float32 torch ``(m, k) @ (k, n)`` GEMM (square ``m`` by default; ``transpose_a``: A
+    stored as (k, m)) on ``device`` at torch's current thread count, best of ``repeats`` (on CUDA
+    synchronised, at torch's default: no TF32)."""
     import torch
 
+    k, n = k or m, n or m
     g = torch.Generator().manual_seed(0)
-    A, B = torch.randn((n, n), generator=g), torch.randn((n, n), generator=g)
-    C = torch.empty((n, n))
-    return 2.0 * n**3 / best_seconds(lambda: torch.matmul(A, B, out=C), repeats) / 1e9
+    A = torch.randn((k, m) if transpose_a else (m, k), generator=g).to(device)
+    A = A.T if transpose_a else A
+    B = torch.randn((k, n), generator=g).to(device)
+    C = torch.empty((m, n), device=device)
+
+    def product() -> None:
+        torch.matmul(A, B, out=C)
+        if device != "cpu":
+            torch.cuda.synchronize()
+    product()
+    return 2.0 * m * k * n / best_seconds(product, repeats) / 1e9
 
 
 def disk_write_rate(folder: Path, n_bytes: int = 1 << 30) -> float:

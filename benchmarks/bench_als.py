@@ -45,21 +45,9 @@ import sys
 import time
 
 import numpy as np
-from _measure import bar, best_seconds, log
+from _measure import bar, best_seconds, log, torch_gemm_rate
 
 ALS_OVER_GEMM = 0.8      # issue 21
-
-
-def torch_gemm_rate(m: int, k: int, n: int, repeats: int = 3, transpose_a: bool = False) -> float:
-    """GFLOP/s of a float32 torch ``(m, k) @ (k, n)`` GEMM (``transpose_a``: A stored as (k, m)), best of 3."""
-    import torch
-
-    g = torch.Generator().manual_seed(0)
-    A = torch.randn((k, m) if transpose_a else (m, k), generator=g)
-    A = A.T if transpose_a else A
-    B = torch.randn((k, n), generator=g)
-    C = torch.empty((m, n))
-    return 2.0 * m * k * n / best_seconds(lambda: torch.matmul(A, B, out=C), repeats) / 1e9
 
 
 def numpy_gemm_rate(n: int, repeats: int = 3) -> float:
@@ -69,25 +57,28 @@ def numpy_gemm_rate(n: int, repeats: int = 3) -> float:
     return 2.0 * n**3 / best_seconds(lambda: np.matmul(A, A, out=C), repeats) / 1e9
 
 
-def gemm_rates(n_lv: int, step: int, n_pack: int) -> dict[str, float]:
-    rates = {
-        "numpy 4096x4096 @ 4096x4096": numpy_gemm_rate(4096),
-        "torch 4096x4096 @ 4096x4096": torch_gemm_rate(4096, 4096, 4096),
+def gemm_rates(n_lv: int, step: int, n_pack: int, device: str = "cpu") -> dict[str, float]:
+    """GFLOP/s of the GEMMs the ALS is held to, on the device it ran on (numpy's only on the CPU)."""
+    rates = {} if device != "cpu" else {"numpy 4096x4096 @ 4096x4096": numpy_gemm_rate(4096)}
+    rates.update({
+        f"torch {device} 4096x4096 @ 4096x4096": torch_gemm_rate(4096, 4096, 4096, device=device),
         f"(W^2)^T P: ({step},{n_lv})^T-stored @ ({n_lv},{n_pack})": torch_gemm_rate(step, n_lv, n_pack,
-                                                                                transpose_a=True),
-        f"W^2 (V_i V_j)^T: ({n_lv},{step}) @ ({step},{n_pack})": torch_gemm_rate(n_lv, step, n_pack),
-    }
+                                                                                transpose_a=True, device=device),
+        f"W^2 (V_i V_j)^T: ({n_lv},{step}) @ ({step},{n_pack})": torch_gemm_rate(n_lv, step, n_pack, device=device),
+    })
     return {name: round(r, 1) for name, r in rates.items()}
 
 
-def cholesky_seconds(n_systems: int, c: int, step: int) -> float:
+def cholesky_seconds(n_systems: int, c: int, step: int, device: str = "cpu") -> float:
     """Seconds to factor and solve ``n_systems`` SPD ``c x c`` systems in batches of ``step``, as als does."""
     import torch
 
     g = torch.Generator().manual_seed(0)
     A = torch.randn((step, 2 * c, c), generator=g)
-    G = A.transpose(1, 2) @ A + torch.eye(c)
-    R = torch.randn((step, c, 1), generator=g)
+    G = (A.transpose(1, 2) @ A + torch.eye(c)).to(device)
+    R = torch.randn((step, c, 1), generator=g).to(device)
+    sync = torch.cuda.synchronize if device != "cpu" else (lambda: None)
+    sync()
     start = time.perf_counter()
     done = 0
     while done < n_systems:
@@ -95,6 +86,7 @@ def cholesky_seconds(n_systems: int, c: int, step: int) -> float:
         L, _ = torch.linalg.cholesky_ex(G[:m])
         torch.cholesky_solve(R[:m], L)
         done += m
+    sync()
     return time.perf_counter() - start
 
 
@@ -125,7 +117,8 @@ def main() -> int:
     del A, B
     n_pack = c * (c + 1) // 2
     step = int(min(n_tx, max(1, CHUNK_BYTES // (4 * (3 * n_lv + n_pack + 2 * c * c)))))   # als_basis' chunk
-    gemm_before = gemm_rates(n_lv, step, n_pack)
+    device = "cuda" if args.backend != "numpy" and torch.cuda.is_available() else "cpu"   # where als_basis runs
+    gemm_before = gemm_rates(n_lv, step, n_pack, device)
     log(f"GEMM GFLOP/s: {gemm_before}")
 
     def run(n_iter: int) -> tuple[float, object]:
@@ -144,8 +137,8 @@ def main() -> int:
             f"{res3.iterations})")
     per_it = (float(np.median(t3)) - float(np.median(t1))) / 2
     gemm_flops = 2.0 * n_lv * n_tx * (2 * n_pack + 3 * c)
-    chol = cholesky_seconds(n_tx + n_lv, c, step)
-    gemm_after = gemm_rates(n_lv, step, n_pack)
+    chol = cholesky_seconds(n_tx + n_lv, c, step, device)
+    gemm_after = gemm_rates(n_lv, step, n_pack, device)
     log(f"GEMM GFLOP/s after: {gemm_after}")
     peak = max(max(gemm_before.values()), max(gemm_after.values()))
     torch_peak = max(v for d in (gemm_before, gemm_after) for name, v in d.items() if not name.startswith("numpy"))

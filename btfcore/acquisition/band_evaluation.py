@@ -34,7 +34,7 @@ noise-free truth BTF ``(n_lv, rows, w, 3)`` (linear RGB, rows
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -125,18 +125,21 @@ def pattern_maxima(truth: np.ndarray, strategies: Sequence[Strategy]) -> dict[st
 
 
 def with_pattern_gains(strategies: Sequence[Strategy], maxima: Sequence[dict[str, np.ndarray]],
-                       noise: SensorNoise) -> list[Strategy]:
-    """The strategies, those with their own patterns given their images' gains (auto exposure to ``noise.fill``,
-    :func:`btfcore.acquisition.noise.exposure_gain`) from the maxima of every band (:func:`pattern_maxima`)."""
+                       noise: SensorNoise, gains_of: Callable[[np.ndarray], np.ndarray] | None = None
+                       ) -> list[Strategy]:
+    """The strategies, those with their own patterns given their images' gains from the maxima of every band
+    (:func:`pattern_maxima`): ``gains_of(maxima)`` (``(n_views * m,)`` each), by default each image's auto
+    exposure to ``noise.fill`` (:func:`btfcore.acquisition.noise.exposure_gain`)."""
+    gains_of = gains_of or (lambda mx: exposure_gain(mx, noise))
     out = []
     for s in strategies:
         if s.source == "patterns":
-            s = dataclasses.replace(s, gains=exposure_gain(np.max([m[s.name] for m in maxima], axis=0), noise))
+            s = dataclasses.replace(s, gains=gains_of(np.max([m[s.name] for m in maxima], axis=0)))
         out.append(s)
     return out
 
 
-def noisy_patterns(truth: np.ndarray, r0: int, gains: np.ndarray, patterns: np.ndarray, noise: SensorNoise | None,
+def noisy_patterns(truth: np.ndarray, r0: int, gains: np.ndarray | None, patterns: np.ndarray, noise: SensorNoise | None,
                    seed: Sequence[int] | None) -> np.ndarray:
     """Every view of texture rows ``r0 : r0 + len`` under ``patterns`` ``(m, n_leds)``, ``(n_views * m, rows, w, 3)``.
 
@@ -219,7 +222,8 @@ def floor_name(strategy: str) -> str:
 
 def reconstruct_strategies(strategies: Sequence[Strategy], r0: int, r1: int, truth_halo: np.ndarray, g0: int,
                            geometry: Geometry, measured: Measured, noise_free: Measured | None = None,
-                           noise: SensorNoise | None = None, seed: Sequence[int] | None = None
+                           noise: SensorNoise | None = None, seed: Sequence[int] | None = None,
+                           measure_own: Callable[[Strategy], np.ndarray] | None = None
                            ) -> Iterator[tuple[Strategy, np.ndarray, np.ndarray | None]]:
     """Every strategy's reconstruction of texture rows r0:r1 and, with ``noise_free``, its noise-free floor.
 
@@ -245,6 +249,10 @@ def reconstruct_strategies(strategies: Sequence[Strategy], r0: int, r1: int, tru
     noise, seed : SensorNoise, sequence of int, optional
         Measure the strategies with their own patterns (source ``'patterns'``,
         :func:`noisy_patterns`); they need both.
+    measure_own : callable, optional
+        ``measure_own(strategy)``: such a strategy's measured images of rows r0:r1 instead
+        (a non-ideal dome's, :func:`btfcore.acquisition.nonideal_measurement.nonideal_patterns`);
+        its floor still measures the ideal dome's noise-free images.
 
     Yields
     ------
@@ -253,19 +261,27 @@ def reconstruct_strategies(strategies: Sequence[Strategy], r0: int, r1: int, tru
     """
     _, single, mux, demux = measured
     caches: tuple[dict[str, np.ndarray], dict[str, np.ndarray]] = ({}, {})
+    own_rows = truth_halo[:, r0 - g0:r1 - g0]
     for strategy in strategies:
         own = None
         if strategy.source == "patterns":
-            if noise is None or seed is None:
+            if strategy.patterns is None or strategy.gains is None:
+                raise ValueError(f"strategy {strategy.name} measures with its own patterns: it needs its patterns "
+                                 "and its images' gains (with_pattern_gains)")
+            if measure_own is not None:
+                own = measure_own(strategy)
+            elif noise is None or seed is None:
                 raise ValueError(f"strategy {strategy.name} measures with its own patterns: pass noise and seed")
-            own = (noise, seed)
+            else:
+                own = noisy_patterns(own_rows, r0, strategy.gains, strategy.patterns, noise, seed)
         recon = reconstruct_band(strategy, r0, r1, geometry.height, truth_halo, single, mux, g0, geometry, demux,
                                  caches[0], own)
         floor = None
         if noise_free is not None and strategy.floor == FLOOR_COMPUTED:
             _, single0, mux0, demux0 = noise_free
+            own0 = noisy_patterns(own_rows, r0, None, strategy.patterns, None, None) if own is not None else None
             floor = np.asarray(reconstruct_band(strategy, r0, r1, geometry.height, truth_halo, single0, mux0, g0,
-                                                geometry, demux0, caches[1], (None, None)), dtype=np.float32)
+                                                geometry, demux0, caches[1], own0), dtype=np.float32)
         yield strategy, np.asarray(recon, dtype=np.float32), floor
 
 
@@ -316,14 +332,14 @@ def _to_rgb(x: np.ndarray) -> np.ndarray:
 def reconstruct_band(strategy: Strategy, r0: int, r1: int, height: int, truth_halo: np.ndarray,
                      single_halo: np.ndarray, mux: np.ndarray, g0: int, geometry: Geometry,
                      demux: np.ndarray, log_cache: dict[str, np.ndarray] | None = None,
-                     own: tuple[SensorNoise | None, Sequence[int] | None] | None = None) -> np.ndarray:
+                     own: np.ndarray | None = None) -> np.ndarray:
     """One strategy's reconstruction of texture rows r0:r1, linear RGB ``(n_lv, r1 - r0, w, 3)``.
 
     ``truth_halo`` and ``single_halo`` hold texture rows ``g0 : g0 + len`` (the ABTF halo);
     ``mux`` (the multiplexed measurement) and ``demux`` (it demultiplexed) rows r0:r1 only.
     ``log_cache`` keeps the log-space conversion of a whole source between the strategies of a band.
-    ``own`` = ``(noise, seed)`` measures a strategy with its own patterns (source ``'patterns'``,
-    :func:`noisy_patterns`; ``noise=None``: noise-free).
+    ``own``: a strategy's measurement with its own patterns (source ``'patterns'``), rows r0:r1
+    (:func:`noisy_patterns`).
     """
     log_cache = {} if log_cache is None else log_cache
     a, b = r0 - g0, r1 - g0
@@ -333,10 +349,9 @@ def reconstruct_band(strategy: Strategy, r0: int, r1: int, height: int, truth_ha
         if strategy.source == "single":
             y = single_halo[strategy.rows, a:b]
         elif strategy.source == "patterns":
-            if own is None or strategy.patterns is None or (own[0] is not None and strategy.gains is None):
-                raise ValueError(f"strategy {strategy.name} measures with its own patterns: it needs its patterns, "
-                                 "its images' gains and (noise, seed)")
-            y = noisy_patterns(truth_halo[:, a:b], r0, strategy.gains, strategy.patterns, *own)
+            if own is None:
+                raise ValueError(f"strategy {strategy.name} measures with its own patterns: pass its images (own)")
+            y = own
         elif strategy.source == "demux":
             y = demux
         else:

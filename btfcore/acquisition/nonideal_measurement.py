@@ -17,6 +17,9 @@ measurements, with the simulator's functions, in BTF space:
 * **registration error**: every image is shifted by its own offset, camera pixels converted to
   texels per view (``texels_per_px``); a band reads one row of halo on each side
   (:func:`registration_halo`), so bands measure every row alike;
+* **a strategy's own patterns** (issue 20's designed patterns, the subsampled S-matrix rows): their
+  shots drift and are shifted like the S-matrix's, with their own draws (:meth:`DomeDraws.for_patterns`),
+  and are exposed like them (:func:`multiplexed_gains`, :func:`nonideal_patterns`);
 * **hot pixels**: a stuck pixel is diluted over the texel it falls in: a fraction
   ``min(1, f / a)`` of each view's texels, with ``a = texels_per_px**2`` the texel's share of one
   pixel, reads ``(1 - a) x + a * FW / g`` in every image of the view (``FW / g``: the image's
@@ -46,8 +49,9 @@ from btfcore.simulate.nonideal import (
     shift_images,
 )
 
-__all__ = ["DomeDraws", "draw_effects", "measure_band_nonideal", "nonideal_gains", "nonideal_moments",
-           "nonideal_multiplexed", "nonideal_single", "noises_at_gains", "registration_halo"]
+__all__ = ["DomeDraws", "draw_effects", "measure_band_nonideal", "multiplexed_gains", "nonideal_gains",
+           "nonideal_moments", "nonideal_multiplexed", "nonideal_patterns", "nonideal_single", "noises_at_gains",
+           "registration_halo"]
 
 #: Seed word of the hot pixels: a property of the dome's cameras, the same for every material.
 HOT_PIXEL_SEED = 20151275
@@ -71,6 +75,12 @@ class DomeDraws:
         Texels holding a hot pixel.
     hot_share : (n_views,) ndarray
         Share ``a`` of a hot texel's value that is the stuck pixel.
+    dome : DomeNonIdeality
+        The dome they were drawn for.
+    texels_per_px : (n_views,) ndarray
+        Texels per camera pixel of each view.
+    seed : tuple of int
+        The material's seed words.
     """
 
     single_drift: np.ndarray
@@ -79,6 +89,20 @@ class DomeDraws:
     mux_shift: np.ndarray
     hot: np.ndarray
     hot_share: np.ndarray
+    dome: DomeNonIdeality
+    texels_per_px: np.ndarray
+    seed: tuple[int, ...]
+
+    def for_patterns(self, n_patterns: int, word: int) -> DomeDraws:
+        """The draws of another set of ``n_patterns`` multiplexed shots per view (a strategy's own
+        patterns, :func:`nonideal_patterns`): their LED factors and offsets from ``seed + [4, word]``,
+        the single-light draws and the cameras' hot pixels unchanged."""
+        n_turn, _, n_leds = self.mux_drift.shape
+        n_views = len(self.texels_per_px)
+        rng = np.random.default_rng([*self.seed, 4, int(word)])
+        drift = led_drift_factors(self.dome.led_drift, rng, (n_turn, int(n_patterns), n_leds))
+        shift = registration_shifts(self.dome.registration_sd_px, rng, n_views * int(n_patterns))
+        return replace(self, mux_drift=drift, mux_shift=shift * np.repeat(self.texels_per_px, n_patterns)[:, None])
 
 
 def draw_effects(dome: DomeNonIdeality, geometry: Geometry, n_patterns: int, texels_per_px: np.ndarray,
@@ -111,7 +135,8 @@ def draw_effects(dome: DomeNonIdeality, geometry: Geometry, n_patterns: int, tex
     hot = np.stack([hot_pixel_mask(min(1.0, dome.hot_pixel_fraction / share[v]) if dome.hot_pixel_fraction else 0.0,
                                    np.random.default_rng([int(seed[0]), HOT_PIXEL_SEED, v]),
                                    (geometry.height, geometry.width)) for v in range(n_views)])
-    return DomeDraws(single_drift, mux_drift, single_shift, mux_shift, hot, share)
+    return DomeDraws(single_drift, mux_drift, single_shift, mux_shift, hot, share, dome, scale,
+                     tuple(int(x) for x in seed))
 
 
 def noises_at_gains(noise: SensorNoise, dome: DomeNonIdeality) -> tuple[SensorNoise, SensorNoise]:
@@ -136,11 +161,19 @@ def nonideal_gains(maxima: Gains, noises: tuple[SensorNoise, SensorNoise], dome:
         ``multiplex_single_exposure`` every pattern of a view gets the gain metered on the view's
         median pattern (:func:`btfcore.simulate.nonideal.metered_maximum`).
     """
-    mux = np.asarray(maxima[1], dtype=np.float64)
+    return exposure_gain(maxima[0], noises[0]), multiplexed_gains(maxima[1], noises[1], dome, n_views)
+
+
+def multiplexed_gains(maxima: np.ndarray, noise: SensorNoise, dome: DomeNonIdeality, n_views: int) -> np.ndarray:
+    """Exposure gains ``(n_views * m,)`` of multiplexed images (``m`` patterns per view, view-major) from
+    their brightest values: each its own (auto exposure), or with ``multiplex_single_exposure`` the
+    gain metered on the view's median pattern (:func:`btfcore.simulate.nonideal.metered_maximum`);
+    ``noise`` at the multiplexed images' camera gain (:func:`noises_at_gains`)."""
+    mux = np.asarray(maxima, dtype=np.float64)
     if dome.multiplex_single_exposure:
         per_view = mux.reshape(int(n_views), -1)
         mux = np.broadcast_to(metered_maximum(per_view, axis=1), per_view.shape).reshape(-1)
-    return exposure_gain(maxima[0], noises[0]), exposure_gain(mux, noises[1])
+    return exposure_gain(mux, noise)
 
 
 def registration_halo(r0: int, r1: int, height: int) -> slice:
@@ -225,6 +258,20 @@ def measure_band_nonideal(truth_ext: np.ndarray, e0: int, g0: int, g1: int, r0: 
     mux = _expose(nonideal_multiplexed(truth_ext, e0, r0, r1, patterns, geometry, draws), r0, gains[1], noises[1],
                   seed, 1, draws, np.asarray(patterns).shape[0])
     return truth_ext[:, r0 - e0:r1 - e0], single, mux, demultiplex_views(mux, patterns, geometry)
+
+
+def nonideal_patterns(truth_ext: np.ndarray, e0: int, r0: int, r1: int, gains: np.ndarray, patterns: np.ndarray,
+                      noise: SensorNoise, geometry: Geometry, draws: DomeDraws, seed: Sequence[int]) -> np.ndarray:
+    """:func:`~btfcore.acquisition.band_evaluation.noisy_patterns` under a non-ideal dome: every view of
+    texture rows r0:r1 under a strategy's own ``patterns`` ``(m, n_leds)``, ``(n_views * m, r1 - r0, w, 3)``.
+
+    ``draws`` are that strategy's (:meth:`DomeDraws.for_patterns`): each shot's LED factors and each
+    image's offset; ``gains`` from :func:`multiplexed_gains`, ``noise`` at the multiplexed camera gain;
+    the views' hot texels as in every image. The noise of texture row ``r`` comes from ``seed + [2, r]``.
+    """
+    m = np.asarray(patterns).shape[0]
+    return _expose(nonideal_multiplexed(truth_ext, e0, r0, r1, patterns, geometry, draws), r0, gains, noise, seed, 2,
+                   draws, m)
 
 
 def nonideal_moments(truth_ext: np.ndarray, e0: int, r0: int, r1: int, gains: Gains,

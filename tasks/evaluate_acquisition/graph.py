@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import zlib
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -44,8 +45,10 @@ from btfcore.acquisition.nonideal_measurement import (
     DomeDraws,
     draw_effects,
     measure_band_nonideal,
+    multiplexed_gains,
     nonideal_gains,
     nonideal_moments,
+    nonideal_patterns,
     noises_at_gains,
     registration_halo,
 )
@@ -151,11 +154,13 @@ def evaluate_band(path: str, r0: int, r1: int, strategies: list[Strategy], gains
     With ``write`` (``{strategy: store path}``) the reconstructions are also
     written to those stores (this band owns whole chunks of them). With ``dome`` (the draws and the
     noise models at their gains of a non-ideal dome) the measurements are the non-ideal dome's
-    (:func:`~btfcore.acquisition.nonideal_measurement.measure_band_nonideal`); the floors stay the
-    ideal dome's noise-free measurements.
+    (:func:`~btfcore.acquisition.nonideal_measurement.measure_band_nonideal`), also those of the
+    strategies with their own patterns (:func:`~btfcore.acquisition.nonideal_measurement.nonideal_patterns`,
+    each strategy's shots drawn by its name); the floors stay the ideal dome's noise-free measurements.
     """
     h = geometry.height
     halo = abtf_halo(r0, r1, h, 3) if h >= 3 else slice(r0, r1)
+    measure_own = None
     if dome is None:
         truth_halo = _read_rows(path, halo.start, halo.stop)
         measured = measure_band(truth_halo, halo.start, r0, r1, gains, patterns, geometry, noise, seed)
@@ -165,10 +170,15 @@ def evaluate_band(path: str, r0: int, r1: int, strategies: list[Strategy], gains
         truth_halo = truth_ext[:, halo.start - ext.start:halo.stop - ext.start]
         measured = measure_band_nonideal(truth_ext, ext.start, halo.start, halo.stop, r0, r1, gains, dome[1],
                                          patterns, geometry, dome[0], seed)
+
+        def measure_own(strategy: Strategy) -> np.ndarray:        # a strategy's own patterns under the dome
+            own = dome[0].for_patterns(strategy.patterns.shape[0], zlib.crc32(strategy.name.encode()))
+            return nonideal_patterns(truth_ext, ext.start, r0, r1, strategy.gains, strategy.patterns, dome[1][1],
+                                     geometry, own, seed)
     noise_free = noise_free_band(truth_halo, halo.start, r0, r1, patterns, geometry) if floors else None
     scores, ref = {}, BandTruth.of(measured[0])
     for strategy, recon, floor in reconstruct_strategies(strategies, r0, r1, truth_halo, halo.start, geometry,
-                                                         measured, noise_free, noise, seed):
+                                                         measured, noise_free, noise, seed, measure_own):
         for what, x in (("", recon), (" (noise-free floor)", floor)):
             if x is not None and not np.all(np.isfinite(x)):
                 bad = np.unravel_index(int(np.argmin(np.isfinite(x))), x.shape)
@@ -248,11 +258,14 @@ def band_pattern_maxima(path: str, r0: int, r1: int, ops: tuple[list[Strategy], 
 
 
 def _with_pattern_gains(ops: tuple[list[Strategy], dict[str, Any]], maxima: list[dict[str, np.ndarray]],
-                        noise: SensorNoise, path: str) -> tuple[list[Strategy], dict[str, Any]]:
-    """The operators with the gains of the designed patterns' images (the ideal dome's auto exposure, also
-    under a non-ideal dome: docs/evaluation.md, "Basis-aware illumination patterns (issue 20)")."""
+                        noise: SensorNoise, path: str,
+                        dome: tuple[DomeNonIdeality, tuple[SensorNoise, SensorNoise], int] | None = None
+                        ) -> tuple[list[Strategy], dict[str, Any]]:
+    """The operators with the gains of their own patterns' images: each image's auto exposure, or under a
+    non-ideal ``dome`` as its S-matrix images are exposed (:func:`multiplexed_gains`)."""
+    gains_of = None if dome is None else (lambda mx: multiplexed_gains(mx, dome[1][1], dome[0], dome[2]))
     try:
-        return with_pattern_gains(ops[0], maxima, noise), ops[1]
+        return with_pattern_gains(ops[0], maxima, noise, gains_of), ops[1]
     except ValueError as exc:
         raise ValueError(f"{path}: btf: {exc}") from None
 
@@ -329,7 +342,8 @@ def _submit_material(client: Any, model_path: str, materials: list[Material], m:
                                                          *([dome] if dome else [])), pure=False)
     ops = client.submit(_operators, model_path, materials, m.material_id, config.model_settings(), geometry, config,
                         variance, patterns, pure=False)
-    ops = client.submit(_with_pattern_gains, ops, each_band(band_pattern_maxima, ops), noise, m.path, pure=False)
+    ops = client.submit(_with_pattern_gains, ops, each_band(band_pattern_maxima, ops), noise, m.path, gain_dome,
+                        pure=False)
     strategies = client.submit(_first, ops, pure=False)
     info = client.submit(_strategy_info, ops, pure=False)
     scores = client.submit(_reduce_scores, each_band(evaluate_band, strategies, gains, patterns, geometry, noise,

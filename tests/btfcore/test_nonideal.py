@@ -6,14 +6,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from btfcore.acquisition.band_evaluation import image_maxima, measure_band
+from btfcore.acquisition.band_evaluation import image_maxima, measure_band, noisy_patterns
 from btfcore.acquisition.hadamard import multiplexing_patterns
 from btfcore.acquisition.noise import SensorNoise, exposure_gain
 from btfcore.acquisition.nonideal_measurement import (
     draw_effects,
     measure_band_nonideal,
+    multiplexed_gains,
     nonideal_gains,
     nonideal_multiplexed,
+    nonideal_patterns,
     nonideal_single,
     noises_at_gains,
     registration_halo,
@@ -182,6 +184,41 @@ def test_evaluation_measurements_of_the_ideal_dome_are_the_ideal_ones():
     for x, y in zip(a[:1] + a[2:], b[:1] + b[2:]):
         np.testing.assert_allclose(x, y, rtol=2e-6, atol=1e-6)
     np.testing.assert_array_equal(a[1], b[1][:, 0:GEO.height])
+
+
+def test_a_strategys_own_patterns_under_the_dome():
+    """Designed patterns' shots (issue 20) drift, shift and share one exposure per view like the S-matrix's,
+    with their own draws; under the ideal dome they are measured as the ideal dome measures them."""
+    truth = _truth()
+    rng = np.random.default_rng(3)
+    own = (rng.random((5, GEO.n_leds)) < 0.3).astype(np.float64)
+    own[:, 0] = 1.0                                                          # never an empty pattern
+    noise = SensorNoise()
+    maxima = noisy_patterns(truth, 0, None, own, None, None).reshape(GEO.n_views * 5, -1).max(axis=1)
+    gains = multiplexed_gains(maxima, noise, IDEAL, GEO.n_views)
+    np.testing.assert_array_equal(gains, exposure_gain(maxima, noise))      # the ideal dome: auto exposure
+    draws = draw_effects(IDEAL, GEO, 15, np.ones(GEO.n_views), (0, 1)).for_patterns(5, 7)
+    np.testing.assert_allclose(nonideal_patterns(truth, 0, 2, 7, gains, own, noise, GEO, draws, (0, 1)),
+                               noisy_patterns(truth[:, 2:7], 2, gains, own, noise, (0, 1)), rtol=2e-6, atol=1e-6)
+    dome = DomeNonIdeality(led_drift=0.05, registration_sd_px=0.4, multiplex_single_exposure=True,
+                           hot_pixel_fraction=0.01)
+    base = draw_effects(dome, GEO, 15, np.full(GEO.n_views, 0.5), (0, 1))
+    draws = base.for_patterns(5, 7)
+    assert draws.mux_drift.shape == (GEO.n_turn, 5, GEO.n_leds) and draws.mux_shift.shape == (GEO.n_views * 5, 2)
+    assert np.array_equal(draws.hot, base.hot) and np.array_equal(draws.single_drift, base.single_drift)
+    assert np.array_equal(base.for_patterns(5, 7).mux_drift, draws.mux_drift)          # seeded by the word
+    assert not np.array_equal(base.for_patterns(5, 8).mux_drift, draws.mux_drift)
+    assert np.abs(draws.mux_shift).max() <= 0.5 * MAX_SHIFT_PX                         # px -> texels
+    gains = multiplexed_gains(maxima, noise, dome, GEO.n_views).reshape(GEO.n_views, -1)
+    assert np.all(gains == gains[:, :1])                                                # one exposure per view
+    # a band with its one-row registration halo measures its rows as the whole texture does
+    whole = nonideal_patterns(truth, 0, 0, GEO.height, gains.reshape(-1), own, noise, GEO, draws, (0, 1))
+    ext = registration_halo(3, 6, GEO.height)
+    band = nonideal_patterns(truth[:, ext], ext.start, 3, 6, gains.reshape(-1), own, noise, GEO, draws, (0, 1))
+    np.testing.assert_allclose(band, whole[:, 3:6], rtol=1e-6)
+    nominal = noisy_patterns(truth, 0, None, own, None, None)
+    drifted = nonideal_multiplexed(truth, 0, 0, GEO.height, own, GEO, base.for_patterns(5, 7))
+    assert not np.allclose(drifted, nominal, rtol=1e-3)
 
 
 def test_evaluation_drift_and_registration_and_hot_pixels():

@@ -24,6 +24,7 @@ import json
 import multiprocessing
 import os
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
@@ -68,8 +69,8 @@ class Started:
 class Btf:
     """``btf(*args)``: a real ``btf`` command in a forked process on the session's Prefect server and Dask cluster."""
 
-    def __init__(self, client: Any, profile: Path, logs: Path):
-        self.client, self.profile, self.logs = client, profile, logs
+    def __init__(self, client: Any, profile: Path, logs: Path, n_workers: int):
+        self.client, self.profile, self.logs, self.n_workers = client, profile, logs, n_workers
         self.context = multiprocessing.get_context("forkserver")
         self.context.set_forkserver_preload(kill_runner.PRELOAD)
         self.count = 0
@@ -119,8 +120,6 @@ class Btf:
     def with_worker_kill(self, sentinel: Path, *args: Any) -> Run:
         """The command, completed although one Dask worker SIGKILLs itself at its first chunk
         (``BTF_KILL_WORKER_ONCE``, set in the session's workers for this run)."""
-        n_workers = self.workers()
-
         def arm(value: str | None) -> None:
             if value is None:
                 os.environ.pop("BTF_KILL_WORKER_ONCE", None)
@@ -133,12 +132,37 @@ class Btf:
         finally:
             self.client.run(arm, None)
         assert sentinel.exists(), "no worker was killed: the run had no chunk left to write"
-        assert sentinel.read_text().split()[1] == "chunk-written"
-        self.client.wait_for_workers(n_workers, timeout=120)   # the nanny restarted it
+        killed_pid, point = sentinel.read_text().split()[:2]
+        assert point == "chunk-written"
+        self._replaced(int(killed_pid), self.n_workers)
         return run
 
-    def workers(self) -> int:
-        return len(self.client.scheduler_info()["workers"])
+    def _replaced(self, killed_pid: int, n_workers: int) -> None:
+        """Wait until the scheduler has dropped the killed worker and counts ``n_workers`` again.
+
+        Its nanny restarts it. Once in a full suite (seen in CI and locally, never with this module alone) the
+        restart did not happen: the session's cluster kept one worker, a later test saw one too few and a later
+        worker kill left none, so its command waited for ever. Where no successor registers within 60 s, the
+        session's LocalCluster is scaled up by the missing workers, with a warning in the test report."""
+        def missing() -> int:
+            pids = self.worker_pids()
+            return max(n_workers - len(pids), pids.count(killed_pid))
+
+        for attempt in range(2):
+            deadline = time.monotonic() + 60
+            while time.monotonic() < deadline and missing():
+                time.sleep(0.1)
+            if not missing():
+                return
+            if attempt == 0:
+                warnings.warn(f"the nanny did not replace the killed Dask worker {killed_pid} within 60 s; "
+                              "scaling the session's LocalCluster up instead")
+                cluster = self.client.cluster
+                cluster.scale(len(cluster.worker_spec) + missing())
+        raise AssertionError(f"the killed worker was not replaced: workers {self.worker_pids()}")
+
+    def worker_pids(self) -> list[int]:
+        return self.client.run_on_scheduler(lambda dask_scheduler: [w.pid for w in dask_scheduler.workers.values()])
 
     def _clients(self) -> set[str]:
         return set(self.client.run_on_scheduler(lambda dask_scheduler: list(dask_scheduler.clients)))
@@ -157,13 +181,13 @@ class Btf:
 
 @pytest.fixture(scope="module")
 def btf(runtime_session, tmp_path_factory):
-    _profile_name, prefect_url, client = runtime_session
+    session_profile, prefect_url, client = runtime_session
     folder = tmp_path_factory.mktemp("kill-matrix")
     profile = folder / "session-cluster.yaml"
     profile.write_text(f"cluster:\n  kind: address\n  address: {client.scheduler.address}\n  timeout_s: 60\n"
                        f"prefect:\n  api_url: {prefect_url}\n")
     (folder / "logs").mkdir()
-    runner = Btf(client, profile, folder / "logs")
+    runner = Btf(client, profile, folder / "logs", session_profile.cluster["n_workers"])
     yield runner
     from multiprocessing import forkserver
 

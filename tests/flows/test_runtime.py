@@ -16,6 +16,7 @@ def _worker_environ(keys):
 def test_workers_share_the_one_prefect_server(runtime_session):
     profile, url, client = runtime_session
     assert profile.path == str(DEFAULT_PROFILE)
+    client.wait_for_workers(2, timeout=60)       # a worker an earlier test killed may be restarting
     info = client.scheduler_info()
     assert len(info["workers"]) == 2
     assert all(w["nthreads"] == 1 for w in info["workers"].values())

@@ -88,7 +88,7 @@ def test_chunked_reconstruction_equals_in_memory(tiny_eval, tmp_path, band_rows)
     from tasks.evaluate_acquisition import (
         BandScores, bands, create_reconstruction_store, demultiplex_views, evaluate_band, finish_scores, noisy_rows,
         reconstruct_band)
-    from btfcore.acquisition.band_evaluation import floor_name, noise_free_band
+    from btfcore.acquisition.band_evaluation import floor_name, noise_free_band, noisy_patterns
     from btfcore.acquisition.strategies import FLOOR_COMPUTED
     from tasks.evaluate_acquisition.graph import _read_rows
 
@@ -100,7 +100,10 @@ def test_chunked_reconstruction_equals_in_memory(tiny_eval, tmp_path, band_rows)
     truth = _read_rows(m.path, 0, h)
     single, mux = noisy_rows(truth, 0, gains, patterns, geometry, noise, seed)
     demux = demultiplex_views(mux, patterns, geometry)
-    whole = {s.name: reconstruct_band(s, 0, h, h, truth, single, mux, 0, geometry, demux, None, (noise, seed))
+    def own(s, noisy=True):                     # a strategy's own patterns measured over the whole texture
+        return noisy_patterns(truth, 0, s.gains, s.patterns, *((noise, seed) if noisy else (None, None))) \
+            if s.source == "patterns" else None
+    whole = {s.name: reconstruct_band(s, 0, h, h, truth, single, mux, 0, geometry, demux, None, own(s))
              for s in strategies}
     # chunked: bands with halos, written to stores and reduced scores
     write = {s.name: create_reconstruction_store(tmp_path / f"{s.name}.zarr", m.path, band_rows, s.name)
@@ -128,7 +131,7 @@ def test_chunked_reconstruction_equals_in_memory(tiny_eval, tmp_path, band_rows)
         if floor in total:
             noise_free = noise_free_band(truth, 0, 0, h, patterns, geometry)
             whole_floor = reconstruct_band(s, 0, h, h, truth, *noise_free[1:3], 0, geometry, noise_free[3], None,
-                                           (None, None))
+                                           own(s, noisy=False))
             assert finish_scores(total[floor], row_max)["rel_l2_log_y"] == pytest.approx(
                 relative_error(truth, whole_floor.astype(np.float32), space="log_y"), rel=1e-3), s.name
 

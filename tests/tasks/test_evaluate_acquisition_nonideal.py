@@ -56,7 +56,9 @@ def test_bands_measure_like_the_whole_texture(evaluated):
     ops = _operators(str(out / "realistic" / "model.zarr"), materials, m.material_id,
                      config.model_settings(), geometry, config, variance, patterns)
     strategies, _ = _with_pattern_gains(ops, [band_pattern_maxima(m.path, a, b, ops) for a, b in bands(12, 5)],
-                                        noise, m.path)
+                                        noise, m.path, (config.non_ideal, noises, geometry.n_views))
+    own = [s for s in strategies if s.source == "patterns"]
+    assert own and all(np.all(g == g[:, :1]) for g in (s.gains.reshape(geometry.n_views, -1) for s in own))
     totals = []
     for band_rows in (12, 5, 1):
         total: dict[str, BandScores] = {}
