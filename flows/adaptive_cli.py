@@ -125,6 +125,7 @@ def run_acquire(args: argparse.Namespace) -> int:
         "true_error": last["true"], "predicted_time_s": doc["predicted_time_s"],
         "fixed": {f["name"]: {"shots": f["n_shots"], "error": f["error"]} for f in rec.get("fixed", [])},
         "report_html": doc["report_html"], "report_json": doc["report_json"],
-        "reused": doc["reused"], "finished_before": doc["finished_before"]}
+        "reused": doc["reused"], "finished_before": doc["finished_before"],
+        **({"exposure": doc["exposure"]} if "exposure" in doc else {})}    # --measured: where each gain came from
     print(json.dumps(summary, indent=2))
     return 0

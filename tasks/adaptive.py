@@ -35,7 +35,7 @@ import zarr
 
 from btfcore.acquisition.adaptive import AdaptiveResult, AdaptiveState, group_pairs, log_y_error, run_adaptive
 from btfcore.acquisition.band_evaluation import noisy_single
-from btfcore.acquisition.noise import SensorNoise, exposure_gain
+from btfcore.acquisition.noise import SensorNoise, bracket_gain, exposure_gain
 from btfcore.acquisition.plan import CapturePlan, ExposureModel, Shot
 from btfcore.acquisition.sampling import parabolic_map_sampling, random_swap
 from btfcore.acquisition.strategies import THESIS_N_S, Geometry, row_groups, scaled_pairs
@@ -96,13 +96,19 @@ def measured_executor(folder: Path, noise: SensorNoise, correction: Any = None) 
     ``correction`` (a :class:`tasks.reconstruct.RowCorrection` of the white standard's LED gains and the
     colour matrix, as ``btf reconstruct`` corrects single-light rows) each row is divided by its LED's gain
     and mapped by the matrix; without, rows are taken as ingested (the relative weights make the fit
-    indifferent to one scale for all rows, not to per-LED gains). The noise model's gain of each image is
-    the electrons per unit of its brightest value at the noise model's fill, as the simulator's ideal auto
-    exposure sets it (:func:`simulated_measure`). A missing store raises :class:`AwaitingShot`.
+    indifferent to one scale for all rows, not to per-LED gains). The noise model's gain of each image
+    is read from the capture the store was ingested from (its ``source``): the electrons per DN/s of the
+    longest frame of the row's bracket that did not saturate at its brightest value
+    (:func:`btfcore.acquisition.noise.bracket_gain`, with the capture's sensor gain, black and white
+    levels). Where that capture cannot be read (moved, or a sensor without a recorded gain) the gain is
+    that of the simulator's ideal auto exposure (:func:`simulated_measure`) and the step counts in
+    ``measure.exposures["assumed"]`` (else ``["capture"]``), which the run's summary reports. A missing
+    store raises :class:`AwaitingShot`.
     """
     from tasks.stores.measurement import open_measurement_store, read_G
 
     calls = [0]
+    exposures = {"capture": 0, "assumed": 0}
 
     def measure(group: int, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         path = step_measurement(folder, calls[0])
@@ -122,14 +128,44 @@ def measured_executor(folder: Path, noise: SensorNoise, correction: Any = None) 
         order = [int(np.flatnonzero(found == r)[0]) for r in rows]
         y = np.asarray(store["measured"][...], dtype=np.float32)[order]
         y = y.reshape(len(rows), -1, 3) / np.asarray(G.data, dtype=np.float32)[order, None, None]
+        ingested = y.reshape(len(rows), -1).max(axis=1)                     # DN/s, as the frames saw it
         if correction is not None:
             y = correction.rows(y, correction.gain[np.asarray(rows)])
         bright = y.reshape(len(rows), -1).max(axis=1)
-        if not np.all(np.isfinite(y)) or np.any(bright <= 0):
+        if not np.all(np.isfinite(y)) or np.any(bright <= 0) or np.any(ingested <= 0):
             raise ValueError(f"{path}: a row is dark, or holds NaN/Inf; check the shot's exposure and ingest it "
                              "again")
-        return y, exposure_gain(bright, noise)
+        bracket = _capture_bracket(store, np.asarray(order))
+        if bracket is None:
+            exposures["assumed"] += 1
+            return y, exposure_gain(bright, noise)
+        exposures["capture"] += 1
+        # electrons per DN/s of the frames, then per unit of the corrected rows (their scale is bright / ingested)
+        return y, bracket_gain(ingested, *bracket) * ingested / bright
+
+    measure.exposures = exposures
     return measure
+
+
+def _capture_bracket(store: Any, order: np.ndarray) -> tuple[np.ndarray, float, float] | None:
+    """``(exposure times (rows, n_exp), saturation DN, e/DN)`` of a measurement store's rows ``order`` from the
+    capture it was ingested from (its ``source``); None where that capture or its sensor's gain cannot be read."""
+    from tasks.stores import open_capture_store
+
+    attrs = dict(store.attrs)
+    source = attrs.get("source")
+    if not source or not str(attrs.get("units", "")).startswith("DN/s"):
+        return None
+    try:
+        capture = open_capture_store(source)
+    except Exception:  # noqa: BLE001 - a moved or unreadable capture: the ideal auto exposure stands in
+        return None
+    e_per_dn = (capture.meta.sensor or {}).get("gain_e_per_dn")
+    if not e_per_dn:
+        return None
+    t, c, i = np.asarray(store["meas_index"][...])[order].T
+    times = np.asarray(capture.exposure_time)[t, c, i]
+    return times, float(capture.meta.white_level - capture.meta.black_level), float(e_per_dn)
 
 
 def _luma(x: np.ndarray) -> np.ndarray:
@@ -690,7 +726,8 @@ def acquire_adaptive(truth_path: str | os.PathLike, model_path: str | os.PathLik
     plan_doc = write_plan(adaptive_plan(device, rec["groups"]), out / "plan.json", out / "plan.csv", device=device)
     material = (attrs.get("material") or {}).get("material_id") or Path(str(where)).stem
     summary = {"schema": "btf-adaptive-acquisition", "material": material, "class": cls, "target": target,
-               **({"truth": str(truth_path)} if measured is None else {"measured": str(measured)}),
+               **({"truth": str(truth_path)} if measured is None else
+                  {"measured": str(measured), "exposure": dict(measure.exposures)}),   # steps whose gain is read
                "model": str(model_path), "device": device.name,
                "geometry": [geometry.n_turn, geometry.n_cam, geometry.n_leds], "record": rec,
                "predicted_time_s": plan_doc["predicted_time"]["total_s"]}

@@ -37,7 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["SensorNoise", "exposure_gain", "expose", "noise_moments"]
+__all__ = ["SensorNoise", "bracket_gain", "exposure_gain", "expose", "noise_moments"]
 
 
 @dataclass(frozen=True)
@@ -95,6 +95,52 @@ def exposure_gain(image_max: np.ndarray, noise: SensorNoise) -> np.ndarray:
         raise ValueError(f"image {i} has brightest value {float(m.ravel()[i])!r}; an image must have a positive, finite "
                          "maximum to be exposed (remove black images from the measurement)")
     return noise.fill * noise.full_well_e / m                                # eq. g = fill FW / max
+
+
+def bracket_gain(image_max: np.ndarray, exposure_times: np.ndarray, saturation_dn: float,
+                 e_per_dn: float) -> np.ndarray:
+    """Electrons per unit of each HDR-merged image (DN/s) from the bracket it was captured with.
+
+    :func:`exposure_gain` assumes an ideal auto exposure that fills the well to a fraction at the
+    image's brightest value; a real capture read its brightest pixel from the longest exposure of its
+    bracket that did not saturate there (the HDR merge takes each pixel from its unsaturated frames,
+    docs/hdr.md), so that frame's electrons per DN/s are the image's gain. Darker pixels may come from
+    longer frames, with less relative noise than this gain gives them: the model errs on the safe side.
+
+    Parameters
+    ----------
+    image_max : (n_images,) array_like
+        Brightest value of each image in DN/s, > 0.
+    exposure_times : (n_images, n_exp) array_like
+        Exposure times of each image's bracket, seconds; 0 marks a frame not taken.
+    saturation_dn : float
+        DN above the black level at which a frame saturates (white level minus black level).
+    e_per_dn : float
+        Electrons per DN.
+
+    Returns
+    -------
+    gain : (n_images,) ndarray of float64
+        :math:`g_i = t^*_i` ``e_per_dn``, :math:`t^*_i` the longest exposure at which the image's brightest
+        value stays within ``saturation_dn``; the shortest one where every frame saturates there.
+
+    Raises
+    ------
+    ValueError
+        For a non-positive maximum or an image without any exposure time (names the image).
+    """
+    m = np.asarray(image_max, dtype=np.float64)
+    t = np.asarray(exposure_times, dtype=np.float64).reshape(len(m), -1)
+    taken = t > 0
+    bad = np.flatnonzero(~(np.isfinite(m) & (m > 0)) | ~taken.any(axis=1))
+    if bad.size:
+        i = int(bad[0])
+        raise ValueError(f"image {i}: brightest value {float(m[i])!r}, exposure times {t[i].tolist()}; an image needs "
+                         "a positive brightest value and at least one exposure time")
+    fits = taken & (m[:, None] * t <= saturation_dn)
+    longest = np.where(fits, t, 0.0).max(axis=1)
+    shortest = np.where(taken, t, np.inf).min(axis=1)
+    return np.where(longest > 0, longest, shortest) * float(e_per_dn)          # eq. g = t* e/DN
 
 
 def expose(signal: np.ndarray, gain: np.ndarray, noise: SensorNoise, rng: np.random.Generator,

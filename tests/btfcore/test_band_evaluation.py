@@ -19,7 +19,7 @@ from btfcore.acquisition.band_evaluation import (
     score_band,
 )
 from btfcore.acquisition.hadamard import multiplexing_patterns
-from btfcore.acquisition.noise import SensorNoise, expose, exposure_gain, noise_moments
+from btfcore.acquisition.noise import SensorNoise, bracket_gain, expose, exposure_gain, noise_moments
 from btfcore.acquisition.reconstruct import measure, texture_variance
 from btfcore.acquisition.strategies import (
     REGISTRY,
@@ -56,6 +56,18 @@ def test_noise_has_the_stated_mean_and_variance(dtype):
 def test_exposure_refuses_a_black_image():
     with pytest.raises(ValueError, match="image 1 has brightest value 0.0"):
         exposure_gain(np.array([1.0, 0.0]), SensorNoise())
+
+
+def test_a_bracket_gives_the_gain_of_its_longest_unsaturated_frame():
+    times = np.array([[0.001, 0.004, 0.016], [0.001, 0.004, 0.016], [0.001, 0.004, 0.016], [0.002, 0.0, 0.0]])
+    image_max = np.array([100.0, 1000.0, 1e7, 10.0])          # DN/s
+    gain = bracket_gain(image_max, times, saturation_dn=4000.0, e_per_dn=1.5)
+    # 100 DN/s fits the 16 ms frame (1.6 DN), 1000 DN/s too (16 DN); 1e7 DN/s saturates every frame: the shortest
+    np.testing.assert_allclose(gain, [0.016 * 1.5, 0.016 * 1.5, 0.001 * 1.5, 0.002 * 1.5])
+    gain = bracket_gain(np.array([400e3]), times[:1], saturation_dn=4000.0, e_per_dn=1.5)   # 4 ms: 1,600 DN
+    np.testing.assert_allclose(gain, [0.004 * 1.5])
+    with pytest.raises(ValueError, match="image 1: .* at least one exposure time"):
+        bracket_gain(np.array([1.0, 1.0]), np.array([[0.1], [0.0]]), 4000.0, 1.5)
 
 
 def test_multiplexed_images_get_shorter_exposures():

@@ -127,11 +127,28 @@ def test_a_dome_closes_the_loop_through_the_plan_files(acquisition_evaluation, m
     led_gain = np.linspace(0.5, 2.0, 16 * 3).reshape(16, 3)
     matrix = np.array([[1.0, 0.1, 0.0], [0.0, 0.9, 0.0], [0.0, 0.2, 1.1]])
     noise = SensorNoise(1e4, 5.0)
-    plain, _ = measured_executor(measured, noise)(steps[0]["group"], rows)
-    corrected, _ = measured_executor(measured, noise, RowCorrection.of(led_gain, matrix, None, 192))(
+    plain, gain = measured_executor(measured, noise)(steps[0]["group"], rows)
+    corrected, corrected_gain = measured_executor(measured, noise, RowCorrection.of(led_gain, matrix, None, 192))(
         steps[0]["group"], rows)
     want = (plain / led_gain[steps[0]["led"]]) @ matrix.T
     np.testing.assert_allclose(corrected, want, rtol=1e-5)
+    # each row's noise gain is that of its bracket's longest frame that did not saturate at its brightest value
+    import zarr
+
+    from tasks.stores import open_capture_store
+
+    assert summary["exposure"] == {"capture": 2, "assumed": 0}
+    capture = open_capture_store(tmp_path / "capture-0" / "000-carpet.zarr")
+    e_per_dn, sat = capture.meta.sensor["gain_e_per_dn"], capture.meta.white_level - capture.meta.black_level
+    bright = plain.reshape(len(rows), -1).max(axis=1)
+    meas_index = np.asarray(zarr.open_group(str(measured / "step_000.zarr"), mode="r")["meas_index"][...])
+    for k, (g, b) in enumerate(zip(gain, bright)):                      # row k: camera k
+        t, c, i = meas_index[meas_index[:, 1] == k][0]
+        times = np.asarray(capture.exposure_time)[t, c, i]
+        frame = g / e_per_dn
+        assert np.isclose(times, frame).any() and b * frame <= sat, (k, frame, times)
+        assert not any(b * t <= sat for t in times if t > frame * 1.0001), (k, frame, times)
+    np.testing.assert_allclose(corrected_gain * corrected.reshape(len(rows), -1).max(axis=1), gain * bright, rtol=1e-5)
     code, _, err = run_btf(*loop[:8], "--white", measured / "step_000.zarr", *loop[8:])   # not a white standard
     assert code == 2 and str(measured / "step_000.zarr") in err and "Traceback" not in err, err
     code, _, err = run_btf("acquire", "--adaptive", "--target-error", "0.1", "--truth", measured, "--model",

@@ -13,7 +13,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def test_import_raw_lists_problems_then_imports(tmp_path, write_dng):
+def test_import_raw_lists_problems_then_imports(tmp_path, write_dng, runtime_session):
     rng = np.random.default_rng(2)
     lines = ["file,turntable,camera,illumination,exposure"]
     for i in range(2):
@@ -33,7 +33,8 @@ def test_import_raw_lists_problems_then_imports(tmp_path, write_dng):
     assert "photo.png): a PNG image, not a camera raw file" in bad.stderr and "Traceback" not in bad.stderr
     assert not (tmp_path / "c.zarr").exists()
     (tmp_path / "manifest.csv").write_text("\n".join(lines) + "\n")
-    good = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300, env=dict(os.environ))
+    good = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300,   # the session's Prefect
+                          env={**os.environ, "PREFECT_API_URL": runtime_session[1]})
     assert good.returncode == 0, good.stderr[-3000:]
     result = json.loads(good.stdout)
     assert result["complete"] and result["shape"] == [1, 1, 2, 2] and result["bayer_pattern"] == "RGGB"

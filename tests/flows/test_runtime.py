@@ -81,7 +81,7 @@ def test_a_failed_run_prints_no_prefect_traceback_unless_asked(runtime_session, 
 
 
 _LISTENING_RUN = """
-import dataclasses, json, sys, time
+import dataclasses, json, os, sys, time
 from urllib.parse import urlsplit
 import psutil
 from flows.runtime import DEFAULT_PROFILE, load_profile, runtime
@@ -93,6 +93,7 @@ def listening():
             for conn in proc.net_connections(kind="inet") if conn.status == psutil.CONN_LISTEN]
 
 if __name__ == "__main__":
+    before = {k: os.environ.get(k) for k in ("PREFECT_API_URL", "OMP_NUM_THREADS")}
     default = load_profile(DEFAULT_PROFILE)          # the default profile, on one worker to save time
     profile = dataclasses.replace(default, cluster={**default.cluster, "n_workers": 1})
     with runtime(profile) as (_p, url, client):
@@ -101,16 +102,22 @@ if __name__ == "__main__":
         deadline = time.monotonic() + 30
         while not any(client.processing().values()) and time.monotonic() < deadline:
             time.sleep(0.1)
-    print(json.dumps({"prefect_port": urlsplit(url).port, "sockets": sockets}))
+    with runtime(profile) as (_p, second_url, client):      # a second run in the same process
+        worker_urls = sorted(set(client.run(lambda: os.environ["PREFECT_API_URL"]).values()))
+    after = {k: os.environ.get(k) for k in before}
+    print(json.dumps({"prefect_port": urlsplit(url).port, "sockets": sockets, "second_url": second_url,
+                      "second_worker_urls": worker_urls, "environment_restored": before == after}))
 """
 
 
-def test_a_default_run_listens_on_loopback_only_and_ends_quietly(tmp_path):
+def test_a_default_run_listens_on_loopback_only_ends_quietly_and_leaves_the_environment(tmp_path):
     """Every listening socket of a default run (temporary Prefect server, scheduler and its HTTP server,
     nanny, worker) binds the loopback: the scheduler's HTTP server (/metrics, worker addresses, logs)
-    used to listen on 0.0.0.0 even without the dashboard. And the run ends without Dask's shutdown
+    used to listen on 0.0.0.0 even without the dashboard. The run ends without Dask's shutdown
     warnings: a worker still busy when the run ends used to print "Worker process still alive after
-    4.0 seconds, killing"."""
+    4.0 seconds, killing". And distributed applies the workers' environment to this process too; the
+    runtime undoes it, so that a second run in the same process does not inherit the first one's Prefect
+    URL (both checked in one process: each run starts a Prefect server and a cluster)."""
     import json
     import subprocess
     import sys
@@ -118,7 +125,7 @@ def test_a_default_run_listens_on_loopback_only_and_ends_quietly(tmp_path):
     script = tmp_path / "listening.py"
     script.write_text(_LISTENING_RUN)
     root = DEFAULT_PROFILE.parents[1]
-    env = {k: v for k, v in os.environ.items() if k not in ("PREFECT_API_URL", "BTF_CLUSTER_CONFIG")}
+    env = {k: v for k, v in os.environ.items() if k not in ("PREFECT_API_URL", "BTF_CLUSTER_CONFIG", "OMP_NUM_THREADS")}
     env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(root), env.get("PYTHONPATH")]))
     out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=240, env=env,
                          cwd=str(tmp_path))
@@ -132,32 +139,7 @@ def test_a_default_run_listens_on_loopback_only_and_ends_quietly(tmp_path):
     assert exposed == [], f"listening beyond loopback: {exposed}"
     assert "still alive" not in out.stderr and "Traceback" not in out.stderr, out.stderr[-3000:]
     assert "WARNING" not in out.stderr, out.stderr[-3000:]
-
-
-def test_a_finished_run_leaves_the_environment_as_it_was(tmp_path):
-    """distributed applies the workers' environment to this process too; the runtime undoes it,
-    so that a second run in the same process does not inherit the first one's Prefect URL."""
-    import subprocess
-    import sys
-
-    code = (
-        "import os\n"
-        "from flows.runtime import runtime\n"
-        "if __name__ == '__main__':\n"
-        "    before = {k: os.environ.get(k) for k in ('PREFECT_API_URL', 'OMP_NUM_THREADS')}\n"
-        "    for _ in range(2):\n"
-        "        with runtime() as (_p, url, client):\n"
-        "            assert client.run(lambda: os.environ['PREFECT_API_URL'])\n"
-        "    after = {k: os.environ.get(k) for k in before}\n"
-        "    print(before == after)\n"
-    )
-    script = tmp_path / "twice.py"
-    script.write_text(code)
-    env = {k: v for k, v in os.environ.items() if k not in ("PREFECT_API_URL", "OMP_NUM_THREADS")}
-    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=240, env=env,
-                         cwd=str(tmp_path))
-    assert out.returncode == 0, out.stderr[-2000:]
-    assert out.stdout.strip().endswith("True")
+    assert report["second_worker_urls"] == [report["second_url"]] and report["environment_restored"], report
 
 
 def _blas_threads() -> set[int]:

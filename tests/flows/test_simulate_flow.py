@@ -121,21 +121,24 @@ def test_killed_run_resumes_bit_identically(tmp_path, dask_client, kill_btf_when
         np.testing.assert_array_equal(resumed.truth["btf_2x"][...], clean.truth["btf_2x"][...])
 
 
-def test_cli_ingest_of_a_simulated_capture(tiny_database, tmp_path):
+def test_cli_ingest_of_a_simulated_capture(tiny_database, runtime_session, tmp_path):
     _config, out, _report = tiny_database
     btf = tmp_path / "stone-btf.zarr"
-    result = _btf("--no-progress", "ingest", str(out / "000-stone.zarr"), "--out", str(btf))
+    # the session's Prefect server, as a running `btf server` serves a user: no temporary one per command
+    # (test_cli_simulate_and_validate runs the CLI with its own)
+    warm = {"PREFECT_API_URL": runtime_session[1]}
+    result = _btf("--no-progress", "ingest", str(out / "000-stone.zarr"), "--out", str(btf), env=warm)
     assert result.returncode == 0, result.stderr[-3000:]
     report = json.loads((tmp_path / "stone-btf.report.json").read_text())
     assert report["stages"]["ingest"]["views_processed"] == 12
     errors = report["errors_against_truth"]
     assert 0 < errors["relative_l2_log_y"] < 0.3 and 0 < errors["relative_l2_linear"] < 0.6, errors
     # a second run finds the finished output and does nothing
-    again = _btf("--no-progress", "ingest", str(out / "000-stone.zarr"), "--out", str(btf))
+    again = _btf("--no-progress", "ingest", str(out / "000-stone.zarr"), "--out", str(btf), env=warm)
     assert again.returncode == 0 and json.loads(again.stdout)["stages"]["ingest"]["views_processed"] == 0
     # btf evaluate ingest prints the same figures and writes them to report.json
     evaluation = _btf("evaluate", "ingest", "--truth", str(out / "000-stone.zarr"), "--btf", str(btf),
-                      "--report", str(tmp_path / "report.json"))
+                      "--report", str(tmp_path / "report.json"), env=warm)
     assert evaluation.returncode == 0, evaluation.stderr
     metrics = json.loads((tmp_path / "report.json").read_text())
     assert metrics == json.loads(evaluation.stdout)
