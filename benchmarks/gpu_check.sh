@@ -18,8 +18,12 @@ python=${PYTHON:-python3}
         "cpu threads", torch.get_num_threads())'
 } 2>&1 | tee "$out/machine.log"
 timeout 240 "$python" -m pytest -q -p no:cacheprovider --noconftest tests/btfcore/test_cuda.py 2>&1 | tee "$out/tests.log"
-timeout 200 "$python" benchmarks/bench_als.py > "$out/als.json" 2> "$out/als.log"; echo "bench_als: exit $?"
-timeout 200 "$python" benchmarks/bench_als.py --n-tx 65536 > "$out/als_65536.json" 2> "$out/als_65536.log"
-echo "bench_als --n-tx 65536: exit $?"
+# 20 iterations per figure: on a GPU an iteration (~0.1 s) is far below the set-up's run-to-run noise, and
+# rank-128 data keeps the rank-64 fit improving for that long (docs/benchmarks.md, "the CUDA paths")
+for mb in 256 4096; do
+    timeout 200 "$python" benchmarks/bench_als.py --n-tx 65536 --iterations 21 --data-rank 128 --chunk-mb $mb \
+        > "$out/als_chunk$mb.json" 2> "$out/als_chunk$mb.log"
+    echo "bench_als --chunk-mb $mb: exit $?"
+done
 timeout 200 "$python" benchmarks/bench_superres.py > "$out/superres.json" 2> "$out/superres.log"
 echo "bench_superres: exit $?"
