@@ -1,7 +1,7 @@
 """``btf acquire --adaptive``: adaptive capture that stops at a quality target (docs/adaptive-capture.md).
 
 Wiring only: the arguments and the run of the command (an entry of :data:`flows.cli.COMMANDS`); the loop
-is :func:`tasks.adaptive.acquire_adaptive` over :mod:`btfcore.acquisition.adaptive`. It works on one
+is :func:`tasks.adaptive_acquire.acquire_adaptive` over :mod:`btfcore.acquisition.adaptive`. It works on one
 material's arrays in memory (a basis, the measured rows), so it runs in the calling process and starts
 neither a Dask cluster nor Prefect. Errors and exit codes are those of :mod:`flows.cli`.
 """
@@ -18,9 +18,14 @@ choose the next camera-parallel (turntable, LED) group, until the predicted
 relative L2 error of log Y reaches --target-error or --budget shots are spent.
 The error is predicted without the truth, from the posterior of the class ALS
 basis' coefficients (paper 4 eq. 10, Tikhonov lambda Sigma^-1) under the
-sensor's noise and a model residual estimated from the material's own rows;
-the next group is the one whose shot most reduces it given the measurements so
-far. The simulator executes every shot on --truth (a noise-free BTF store, e.g.
+sensor's noise and a model residual estimated from the material's own rows.
+The next group is, by default (--select committee), the one whose rows hold the
+most error as a committee of the model database's other per-material ALS bases,
+fitted to the same measurements, sees it (where they disagree with the class
+basis, it lacks a structure), or (--select posterior) the one whose shot most
+reduces the posterior error; the measured rows of the reconstruction are fused
+with their measurements (--rows fused) or the basis' fit (--rows model).
+The simulator executes every shot on --truth (a noise-free BTF store, e.g.
 of `btf evaluate acquisition`'s truth database) and scores each step against
 it; every step's shot is also written as a plan (OUT/plans/step_NNN.json) that
 a dome could execute, and OUT/plan.json holds all shots in acquisition order
@@ -57,9 +62,10 @@ def add_acquire_arguments(p: argparse.ArgumentParser) -> None:
                         help="a dome's shots instead: DIR/step_NNN.zarr, `btf ingest` of the capture of "
                              "OUT/plans/step_NNN.json (needs --device)")
 
-    from flows.arguments import add_calibration
+    from flows.arguments import add_adaptive_choices, add_calibration
 
     add_calibration(p, " (with --measured)")
+    add_adaptive_choices(p, "--")
     p.add_argument("--model", required=True, metavar="MODEL_DIR", help="output folder of `btf build-db`")
     p.add_argument("--class", dest="cls", required=True, metavar="CLS", help="material class of the ALS basis")
     p.add_argument("--device", default=None, choices=DEVICE_NAMES,
@@ -87,7 +93,7 @@ def run_acquire(args: argparse.Namespace) -> int:
     journal, not chosen again) and ``finished_before`` says that the run had finished already.
     """
     from flows.progress import say
-    from tasks.adaptive import acquire_adaptive
+    from tasks.adaptive_acquire import acquire_adaptive
 
     if not args.adaptive:
         raise ValueError("btf acquire needs --adaptive (the only acquisition mode so far; fixed samplings are "
@@ -108,7 +114,8 @@ def run_acquire(args: argparse.Namespace) -> int:
                            budget=args.budget, device_name=args.device, seed=args.seed, compare=not args.no_compare,
                            predictor=args.predictor, weighting=args.weighting, overwrite=args.overwrite,
                            say=lambda line: say(line, not args.quiet), time_aware=args.time_aware,
-                           measured=args.measured, calibration=calibration)
+                           measured=args.measured, calibration=calibration, select=args.select,
+                           measured_rows=args.rows)
     if "waiting" in doc:
         wait = doc["waiting"]
         say(f"btf acquire: step {wait['step']} (turntable {wait['turntable']}, LED {wait['led']}): capture "

@@ -237,6 +237,7 @@ def evaluate(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-adaptive", action="store_true",
                    help="acquisition: skip the adaptive-capture loop on the held-out materials (docs/adaptive-capture.md; "
                         "about a sixth of the run)")
+    add_adaptive_choices(p, "--adaptive-", "acquisition: the adaptive loop's ")
     p.add_argument("--non-ideal", default=None, metavar="PRESET[,FIELD=VALUE...]",
                    help="acquisition: measure under a dome that is not ideal: 'realistic' (VMV §5.1's gains and "
                         "single exposure of the multiplexed captures, 1 %% LED drift, 0.1 px registration error, "
@@ -301,3 +302,17 @@ def cluster(p: argparse.ArgumentParser) -> None:
                    help="spec: print the cluster resource of a kubernetes profile as YAML (for kubectl apply -f -)")
     p.add_argument("profile", metavar="PROFILE", help="execution profile YAML of kind kubernetes "
                    "(example: infra/kubernetes.yaml)")
+
+
+def add_adaptive_choices(p: argparse.ArgumentParser, prefix: str, what: str = "") -> None:
+    """``PREFIXselect`` and ``PREFIXrows`` of the adaptive loop (``btf acquire``: ``--``, ``btf evaluate``:
+    ``--adaptive-``; docs/adaptive-capture.md)."""
+    p.add_argument(f"{prefix}select", default="committee", choices=("committee", "posterior"),
+                   help=f"{what}choice of the next shot: where a committee of the model database's other "
+                        "materials' ALS bases disagrees with the class basis (the error a structure the class basis "
+                        "lacks leaves), or the largest reduction of the class basis' posterior error "
+                        "[default: committee]")
+    p.add_argument(f"{prefix}rows", default="fused", choices=("fused", "model"),
+                   help=f"{what}measured rows of the reconstruction (also the fixed samplings' it is compared "
+                        "with): fused with the measurements, or the basis' fit only (paper 4 eq. 10) "
+                        "[default: fused]")

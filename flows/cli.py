@@ -199,6 +199,7 @@ def _evaluation_config(args: argparse.Namespace):
     return EvaluationConfig(device=args.eval_device, n_turntable=args.eval_turntable, texture_size=args.eval_texture,
                             materials_per_class=args.eval_materials_per_class, seed=args.eval_seed,
                             render_materials=args.eval_render, adaptive=not args.no_adaptive,
+                            adaptive_select=args.adaptive_select, adaptive_rows=args.adaptive_rows,
                             non_ideal=_non_ideal(args.non_ideal) if args.non_ideal else IDEAL)
 
 

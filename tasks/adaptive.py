@@ -10,8 +10,7 @@ The numerics are :mod:`btfcore.acquisition.adaptive`; this module feeds them:
   thesis' random-swap samplings of n_s = 100, 200, 400 (light, turntable) pairs scaled to the device
   (paper 4 §5.2, :func:`btfcore.acquisition.strategies.scaled_pairs`) and the 7x7 parabolic map
   (paper 1 Fig. 3b);
-* the **step journal** of ``btf acquire --adaptive`` (``journal.json``, :func:`open_journal`): every
-  finished step, keyed by the run's inputs, so that a killed run resumes where it stopped;
+* ``btf acquire --adaptive`` itself, with its step journal, is :mod:`tasks.adaptive_acquire`;
 * the **report** (``report.json``, ``report.html`` with error against shots) and the **evaluation
   section** (:func:`evaluate_adaptive`): the loop leave-one-out on every held-out material of the
   truth database with its class's leave-one-out ALS basis, one Dask task per material, and the bars.
@@ -21,12 +20,9 @@ docs/adaptive-capture.md describes the method, the predictor and the measured nu
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
-import shutil
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -42,20 +38,13 @@ from btfcore.acquisition.strategies import THESIS_N_S, Geometry, row_groups, sca
 from btfcore.acquisition.time_model import TimeModelParams, predict_time
 from btfcore.dome import Device
 from btfcore.model.colour import REC709_LUMA
-from tasks.stores.common import json_key
 
-__all__ = ["ADAPTIVE_VERSION", "JOURNAL", "AwaitingShot", "adaptive_plan", "adaptive_material",
-           "evaluate_adaptive", "fixed_curves", "measured_executor", "open_journal", "simulated_measure",
+__all__ = ["ADAPTIVE_VERSION", "AwaitingShot", "committee_bases", "adaptive_plan", "adaptive_material",
+           "evaluate_adaptive", "fixed_curves", "measured_executor", "simulated_measure",
            "step_measurement", "write_adaptive_report"]
 
 #: Raised when the adaptive records' meaning changes (their reuse key includes it).
-ADAPTIVE_VERSION = 1
-#: The step journal of ``btf acquire --adaptive`` in its output folder (:func:`open_journal`).
-JOURNAL = "journal.json"
-#: What ``btf acquire --adaptive`` writes in its output folder besides the journal.
-ACQUIRE_OUTPUTS = ("plans", "plan.json", "plan.csv", "report.json", "report.html", "error_vs_shots.png")
-#: Relative tolerance of a replayed step's recomputed errors against its journal entry.
-REPLAY_RTOL = 1e-6
+ADAPTIVE_VERSION = 2
 
 
 # --------------------------------------------------------------------------- executor and scores
@@ -172,33 +161,36 @@ def _luma(x: np.ndarray) -> np.ndarray:
     return np.asarray(x, dtype=np.float64) @ REC709_LUMA
 
 
-def truth_score(U: np.ndarray, truth: np.ndarray) -> Any:
-    """``score(C) -> relative L2 of log Y`` of the reconstruction :math:`U C` against the truth (simulated data)."""
+def truth_score(truth: np.ndarray) -> Any:
+    """``score(B) -> relative L2 of log Y`` of a reconstruction ``B`` (n_lv, n_tx, 3) against the truth
+    (simulated data)."""
     truth_y = _luma(truth)
-    return lambda C: log_y_error(U @ _luma(C), truth_y)
+    return lambda B: log_y_error(_luma(B), truth_y)
 
 
 def fixed_curves(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, truth: np.ndarray, noise: SensorNoise,
                  light_dir: np.ndarray, view_dir: np.ndarray, seed: int, sampling_steps: int = 1500,
-                 n_thesis: Sequence[int] = THESIS_N_S, weighting: str = "relative") -> list[dict[str, Any]]:
+                 n_thesis: Sequence[int] = THESIS_N_S, weighting: str = "relative",
+                 measured_rows: str = "model") -> list[dict[str, Any]]:
     """Errors of the fixed samplings on one material: random swap of scaled n_s pairs and the 7x7 parabolic map.
 
     Each is measured by the same simulator (:func:`simulated_measure`, one seed per group) and reconstructed
     by the same solve as the adaptive loop (:class:`~btfcore.acquisition.adaptive.AdaptiveState` with the same
-    ``weighting``), so the curves differ only in the sampling. The parabolic map's light/view pairs are
-    shot as the (turntable, LED) groups that hold them, with all cameras (a dome captures every camera of a
-    shot). Returns ``[{"name", "n_thesis", "n_shots", "n_meas", "error"}]``.
+    ``weighting`` and ``measured_rows``), so the curves differ only in the sampling. The parabolic map's
+    light/view pairs are shot as the (turntable, LED) groups that hold them, with all cameras (a dome
+    captures every camera of a shot). Returns ``[{"name", "n_thesis", "n_shots", "n_meas", "error"}]``.
     """
     measure = simulated_measure(truth, noise, [seed, 1])
-    score = truth_score(U, truth)
+    score = truth_score(truth)
     n_pairs = geometry.n_turn * geometry.n_leds
     US = U * sigma[None, :]
 
     def solve(groups: np.ndarray) -> float:
-        state = AdaptiveState(U, sigma, geometry, noise, n_tx=truth.shape[1], weighting=weighting)
+        state = AdaptiveState(U, sigma, geometry, noise, n_tx=truth.shape[1], weighting=weighting,
+                              measured_rows=measured_rows)
         for grp in groups:
             state.add(int(grp), *measure(int(grp), state.rows_of(int(grp))))
-        return score(state.coefficients())
+        return score(state.reconstruction())
 
     out = []
     for n in n_thesis:
@@ -252,7 +244,9 @@ def adaptive_material(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, trut
                       replay: Sequence[dict[str, Any]] = (),
                       on_record: Callable[[dict[str, Any], dict[str, Any] | None], None] | None = None,
                       time_aware: bool = False, measure: Callable[..., Any] | None = None,
-                      n_tx: int | None = None) -> dict[str, Any]:
+                      n_tx: int | None = None, select: str = "posterior",
+                      committee: Sequence[tuple[np.ndarray, np.ndarray]] = (),
+                      measured_rows: str = "model") -> dict[str, Any]:
     """The loop on one simulated material (truth ``(n_lv, h, w, 3)``), with the fixed samplings beside it;
     or, with ``measure`` (:func:`measured_executor`: a dome's shots) and ``n_tx``, on measured shots
     (``truth`` None: no true error, no fixed samplings).
@@ -265,7 +259,9 @@ def adaptive_material(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, trut
     ``on_record(step, recorded)`` is called after every step (its plan written): ``step`` its plain-JSON
     record, ``recorded`` the replayed record or None for a step this run chose. ``time_aware``: the next
     group maximises the expected reduction per second of the time model (:func:`shot_times`), so that
-    a turntable move must buy its 5 s. Returns a plain-JSON record (steps, predicted time, fixed curves).
+    a turntable move must buy its 5 s. ``select``, ``committee``, ``measured_rows``: how the next group is
+    chosen and the measured rows reconstructed (:func:`~btfcore.acquisition.adaptive.run_adaptive`; the fixed
+    samplings get the same ``measured_rows``). Returns a plain-JSON record (steps, predicted time, fixed curves).
     """
     from tasks.plan import write_plan
 
@@ -284,8 +280,9 @@ def adaptive_material(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, trut
 
     result: AdaptiveResult = run_adaptive(U, sigma, geometry, noise, measure, n_tx=int(n_tx), target=target,
                                           budget=budget, seed=seed,
-                                          score=None if truth is None else truth_score(U, truth), on_step=on_step,
-                                          predictor=predictor, weighting=weighting,
+                                          score=None if truth is None else truth_score(truth), on_step=on_step,
+                                          predictor=predictor, weighting=weighting, select=select,
+                                          committee=committee, measured_rows=measured_rows,
                                           replay=[int(s["group"]) for s in replay],
                                           **(shot_times(device) if time_aware else {}))
     plan = adaptive_plan(device, result.groups)
@@ -294,7 +291,7 @@ def adaptive_material(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, trut
               "predicted_time": predict_time(plan, TimeModelParams()).to_dict()}
     if truth is not None and light_dir is not None and view_dir is not None:
         record["fixed"] = fixed_curves(U, sigma, geometry, truth, noise, light_dir, view_dir, seed, sampling_steps,
-                                       weighting=weighting)
+                                       weighting=weighting, measured_rows=measured_rows)
     return record
 
 
@@ -376,15 +373,35 @@ def write_adaptive_report(out_dir: str | os.PathLike, summary: dict[str, Any]) -
 # --------------------------------------------------------------------------- the evaluation's section
 
 
+def committee_bases(model: zarr.Group, exclude: str | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The committee of the adaptive loop's committee selection: every per-material ALS basis
+    ``materials/<id>/als`` of a model store (``btf build-db``'s or the evaluation's) but ``exclude``'s,
+    as ``(U, sigma)``, in material order."""
+    from tasks.model import read_basis
+
+    if "materials" not in model:
+        return []
+    out = []
+    for mid in sorted(model["materials"].group_keys()):
+        where = f"materials/{mid}/als"
+        if mid != exclude and where in model and "U" in model[where]:
+            fit = read_basis(model, where)
+            out.append((np.asarray(fit.U, dtype=np.float64), np.asarray(fit.sigma, dtype=np.float64)))
+    return out
+
+
 def _adaptive_task(model_path: str, materials: list[Any], material_id: str, settings: Any, config: Any,
                    fixed_n400: float | None, record_path: str, key: str) -> dict[str, Any]:
     """One held-out material of the evaluation (a Dask task): its leave-one-out ALS basis, the loop to the
-    budget of the thesis' n_s = 400 scaled, and the fixed samplings; stored under ``key``."""
+    budget of the thesis' n_s = 400 scaled, and the fixed samplings; stored under ``key``. The committee
+    (``config.adaptive_select == 'committee'``) is every other material's own ALS basis."""
     from tasks.evaluate_acquisition.graph import material_geometry, material_index, leave_one_out_bases
     from tasks.evaluate_acquisition.reuse import write_record
 
     m = next(x for x in materials if x.material_id == material_id)
     als = leave_one_out_bases(model_path, materials, material_id, settings)["als"]
+    committee = (committee_bases(zarr.open_group(model_path, mode="r", zarr_format=3), exclude=material_id)
+                 if config.adaptive_select == "committee" else [])
     geometry = material_geometry(m)
     group = zarr.open_group(m.path, mode="r", zarr_format=3)
     truth = np.asarray(group["btf"][...], dtype=np.float32)
@@ -395,7 +412,8 @@ def _adaptive_task(model_path: str, materials: list[Any], material_id: str, sett
     rec = adaptive_material(np.asarray(als.U, dtype=np.float64), np.asarray(als.sigma, dtype=np.float64), geometry,
                             truth, noise, device, target=0.0, budget=budget, seed=seed,
                             light_dir=np.asarray(group["light_dir"][...]), view_dir=np.asarray(group["view_dir"][...]),
-                            sampling_steps=config.sampling_steps)
+                            sampling_steps=config.sampling_steps, select=config.adaptive_select,
+                            committee=committee, measured_rows=config.adaptive_rows)
     rec["class"] = m.cls
     rec["fixed_n400_evaluation"] = fixed_n400
     return write_record(record_path, key, rec)
@@ -413,7 +431,7 @@ def evaluate_adaptive(model_path: str, materials: list[Any], config: Any, client
 
     out = Path(out_dir) / "adaptive"
     out.mkdir(parents=True, exist_ok=True)
-    key = f"{key}/adaptive-{ADAPTIVE_VERSION}"
+    key = f"{key}/adaptive-{ADAPTIVE_VERSION}-{config.adaptive_select}-{config.adaptive_rows}"
     records, futures = {}, {}
     for m in materials:
         path = out / f"{m.material_id}.json"
@@ -471,270 +489,10 @@ def adaptive_bars(records: dict[str, dict[str, Any]], structured: Sequence[str] 
             "share_within_25pct": share, "bar2_met": bool(share["posterior"] >= 0.9)}
 
 
-# --------------------------------------------------------------------------- btf acquire --adaptive
-
-
-def _array_digest(*arrays: np.ndarray) -> str:
-    digest = hashlib.sha256()
-    for a in arrays:
-        a = np.ascontiguousarray(a)
-        digest.update(f"{a.dtype.str}{a.shape}".encode())
-        digest.update(a.tobytes())
-    return digest.hexdigest()[:16]
-
-
-def open_journal(out: Path, key: str, inputs: dict[str, Any], overwrite: bool = False) -> dict[str, Any]:
-    """The step journal ``OUT/journal.json`` of the run ``key``: the one on disk, or a new one.
-
-    The journal (written atomically after every step, :func:`tasks.report.write_json`) holds
-    ``{"schema", "version", "key", "inputs", "steps": [step records], "finished"}``. One of another key,
-    an unreadable one, or outputs without a journal are refused unless ``overwrite``, which deletes the
-    journal and the outputs of :data:`ACQUIRE_OUTPUTS` (nothing else in ``out``) and starts a new one.
-    The new journal is returned, not yet written.
-
-    Raises
-    ------
-    ValueError
-        ``out`` holds another run's steps or outputs and ``overwrite`` is false; the message names
-        the inputs that differ and the option.
-    """
-    path = out / JOURNAL
-    journal = None
-    if path.exists():
-        try:
-            journal = json.loads(path.read_text())
-        except (OSError, ValueError):
-            journal = {}
-        journal = journal if isinstance(journal, dict) else {}
-        if journal.get("key") == key and journal.get("schema") == "btf-adaptive-journal":
-            return journal
-    found = [name for name in ACQUIRE_OUTPUTS if (out / name).exists()]
-    if journal is not None or found:
-        if not overwrite:
-            if journal:
-                old = journal.get("inputs") or {}
-                differ = sorted(k for k in {*old, *inputs} if old.get(k) != inputs.get(k)) or ["version"]
-                why = f"holds the step journal of a run of other inputs ({', '.join(differ)} differ)"
-            elif journal is not None:
-                why = f"holds an unreadable step journal {JOURNAL}"
-            else:
-                why = f"holds the outputs of a run without a step journal ({', '.join(found)})"
-            raise ValueError(f"--out {out} {why}; give --overwrite to discard them and start over, or another "
-                             "--out (the same inputs resume the run)")
-        path.unlink(missing_ok=True)
-        for name in found:
-            if (out / name).is_dir():
-                shutil.rmtree(out / name)
-            else:
-                (out / name).unlink()
-    return {"schema": "btf-adaptive-journal", "version": ADAPTIVE_VERSION, "key": key, "inputs": inputs,
-            "steps": [], "finished": False}
-
-
-def _check_replayed(step: dict[str, Any], recorded: dict[str, Any], journal: Path) -> None:
-    """A replayed step, recomputed, must be its journal entry (CPU seconds aside): else the inputs changed."""
-    for name, value in recorded.items():
-        new = step.get(name)
-        same = (name == "cpu_s" or new == value or (isinstance(value, float) and isinstance(new, float)
-                                                    and bool(np.isclose(new, value, rtol=REPLAY_RTOL, atol=0))))
-        if not same:
-            raise ValueError(f"{journal}: step {recorded.get('step')} recorded {name} = {value!r}, its replay gives "
-                             f"{new!r}: the inputs changed although their key did not; give --overwrite to start "
-                             "over")
-
-
-@dataclass
-class _Loop:
-    """What :func:`acquire_adaptive` runs the loop with (:func:`_loop_setup`)."""
-
-    U: np.ndarray
-    sigma: np.ndarray
-    geometry: Geometry
-    device: Device
-    noise: SensorNoise
-    truth: np.ndarray | None
-    truth_store: Any
-    measure: Any
-    source: dict[str, Any]
-    where: Any
-    attrs: dict[str, Any]
-    texture_shape: tuple[int, int]
-
-
-def _loop_setup(truth_path: Any, measured: Any, model_path: Any, cls: str, device_name: str | None,
-                calibration: Any) -> _Loop:
-    """The basis, geometry, device, noise and executor of a ``btf acquire`` run: the simulator on ``truth_path``
-    or a dome's shots in ``measured`` (:func:`measured_executor`); every input checked, named in the errors."""
-    from btfcore.dome import get_device
-    from tasks.reconstruct import RowCorrection, class_basis, check_sampling, open_model
-    from tasks.stores.btf import open_btf_store
-    from tasks.stores.measurement import open_measurement_store
-
-    model = open_model(model_path)
-    U, sigma = class_basis(model, cls, "als", None, model_path)
-    if measured is None:
-        truth_store = open_btf_store(truth_path, produced_by="`btf evaluate acquisition` (its truth database)")
-        attrs = dict(truth_store.attrs)
-        n_lv, h, w, _ = truth_store.btf.shape
-        tcl = attrs.get("turntable_cameras_leds")
-        device_name = device_name or (attrs.get("evaluation") or {}).get("device")
-        where = truth_path
-    else:
-        truth_store, attrs, where = None, {}, measured
-        first = step_measurement(measured, 0)
-        first_store = open_measurement_store(first) if first.exists() else None
-        h, w = (1, 1) if first_store is None else first_store["measured"].shape[1:3]
-        n_lv, tcl = U.shape[0], None
-    device = get_device(device_name) if device_name else None
-    if tcl is None and device is not None:
-        tcl = [n_lv // (device.n_cam * device.n_leds), device.n_cam, device.n_leds]
-    if tcl is None or int(np.prod(tcl)) != n_lv:
-        raise ValueError(f"{where}: its {n_lv} rows are not (turntable, camera, LED) of a known layout "
-                         f"(turntable_cameras_leds {tcl!r}); give --device of the dome that wrote it")
-    geometry = Geometry(int(tcl[0]), int(tcl[1]), int(tcl[2]), h, w)
-    if device is None:
-        raise ValueError(f"{where}: no device recorded; give --device (the plans are written for it)")
-    if (device.n_cam, device.n_leds) != (geometry.n_cam, geometry.n_leds) or device.n_turn < geometry.n_turn:
-        raise ValueError(f"--device {device.name}: {device.n_turn} x {device.n_cam} x {device.n_leds} does not hold "
-                         f"the {geometry.n_turn} x {geometry.n_cam} x {geometry.n_leds} rows of {where}")
-    device = device.with_overrides(turntable_angle_deg=device.turntable_angle_deg[:geometry.n_turn])
-    noise = SensorNoise(float(device.sensor.full_well_e), float(device.sensor.read_noise_e))
-    if measured is None:
-        check_sampling(model, truth_store.group, truth_path)
-        truth, measure = np.asarray(truth_store.btf[...], dtype=np.float32), None
-        source = {"truth": truth_store.content_key or _array_digest(truth)}
-    else:
-        if first_store is not None:
-            check_sampling(model, first_store, first)
-        truth = None
-        correction = None if calibration is None else \
-            RowCorrection.of(calibration.led_gain, calibration.colour_matrix, None, n_lv)
-        measure = measured_executor(Path(measured), noise, correction)
-        source = {"measured": str(Path(measured).resolve()),
-                  **({"calibration": calibration.key()} if calibration is not None else {})}
-    return _Loop(U, sigma, geometry, device, noise, truth, truth_store, measure, source, where, attrs, (h, w))
-
-
-def acquire_adaptive(truth_path: str | os.PathLike, model_path: str | os.PathLike, cls: str,
-                     out_dir: str | os.PathLike, *, target: float, budget: int | None = None,
-                     device_name: str | None = None, seed: int = 0, compare: bool = True,
-                     sampling_steps: int = 1500, predictor: str = "posterior", weighting: str = "relative",
-                     overwrite: bool = False, say: Callable[[str], None] | None = None,
-                     time_aware: bool = False, measured: str | os.PathLike | None = None,
-                     calibration: Any = None) -> dict[str, Any]:
-    """``btf acquire --adaptive`` on a simulated material: the loop on a truth BTF store, plans, report.
-
-    Resumable (docs/adaptive-capture.md, "Resume"): every finished step is recorded in the journal
-    ``OUT/journal.json`` (:func:`open_journal`), keyed by the inputs' :func:`~tasks.stores.common.json_key`; a rerun
-    with the same inputs replays the recorded steps (measures their groups again, chooses nothing) and
-    continues, and its outputs equal an uninterrupted run's; a finished run's rerun only reads its report.
-
-    Parameters
-    ----------
-    truth_path : path
-        A noise-free ``btf-texture`` store (e.g. of ``btf evaluate acquisition``'s truth database), rows
-        ``(turntable, camera, light)``; its ``turntable_cameras_leds`` (or ``device_name``) gives the groups.
-    model_path : path
-        ``btf build-db``'s output; the class ``cls``'s ALS basis (paper 4) is used.
-    out_dir : path
-        ``report.json``, ``report.html``, ``plans/step_NNN.json`` (one shot each), ``plan.json`` (all
-        shots in acquisition order, with the predicted time), ``journal.json`` (the finished steps).
-    target : float
-        Stop when the predicted relative L2 error of log Y is at most this (a fraction).
-    budget : int, optional
-        Most shots (default: every (turntable, LED) group).
-    overwrite : bool
-        Discard the steps and outputs of a run of other inputs at ``out_dir`` (else refused).
-    time_aware : bool
-        Choose by expected reduction per second of the time model, a turntable move included
-        (:func:`adaptive_material`), instead of per shot.
-    measured : path, optional
-        A real dome's loop instead of the simulator (``truth_path`` None): step ``k``'s shot is read from
-        ``MEASURED/step_kkk.zarr`` (:func:`measured_executor`), ``btf ingest`` of the capture of
-        ``OUT/plans/step_kkk.json``. Where it is missing the run writes that plan and returns
-        ``{"waiting": {...}}``; the next run replays the recorded steps from their stores and goes on.
-        No true error, no fixed samplings. ``device_name`` is required.
-    calibration : tasks.radiometric.Calibration, optional
-        With ``measured``: the white standard's LED gains and the colour matrix the rows are corrected by.
-    say : callable, optional
-        ``say(line)``: an info line (a resumed run says how many steps it replays).
-
-    Returns
-    -------
-    doc : dict
-        ``report.json``'s document with ``report_json`` and ``report_html`` (the paths), ``reused``
-        (``{"steps": [replayed, total]}``) and ``finished_before`` (a finished run's rerun).
-    """
-    from tasks.faults import kill_point
-    from tasks.plan import write_plan
-    from tasks.report import write_json
-
-    if not 0 < target < 1:
-        raise ValueError(f"--target-error {target} must lie in (0, 1): a relative L2 error of log Y (0.2 = 20 %)")
-    loop = _loop_setup(truth_path, measured, model_path, cls, device_name, calibration)
-    U, sigma, geometry, device, noise = loop.U, loop.sigma, loop.geometry, loop.device, loop.noise
-    truth, truth_store, measure, where, attrs, (h, w) = (loop.truth, loop.truth_store, loop.measure, loop.where,
-                                                         loop.attrs, loop.texture_shape)
-    compare = compare and truth is not None
-    n_groups = geometry.n_turn * geometry.n_leds
-    budget = min(budget or n_groups, n_groups)
-    inputs = {"version": ADAPTIVE_VERSION, **loop.source,
-              "basis": _array_digest(U, sigma), "class": cls, "device": device.name,
-              "geometry": [geometry.n_turn, geometry.n_cam, geometry.n_leds, *([h, w] if measured is None else [])],
-              "target": target, "budget": budget, "seed": seed, "predictor": predictor, "weighting": weighting,
-              "compare": compare, "sampling_steps": sampling_steps, **({"time_aware": True} if time_aware else {})}
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    journal_path = out / JOURNAL
-    journal = open_journal(out, json_key(inputs), inputs, overwrite)
-    replay = list(journal["steps"])                            # the steps a killed run finished
-    if journal["finished"] and all((out / name).exists() for name in ACQUIRE_OUTPUTS):
-        doc = json.loads((out / "report.json").read_text())      # a finished run: nothing to do
-        return {**doc, "report_json": str(out / "report.json"), "report_html": str(out / "report.html"),
-                "reused": {"steps": [len(replay), len(replay)]}, "finished_before": True}
-    if replay and say is not None:
-        say(f"btf acquire: {journal_path}: resuming after {len(replay)} recorded step(s), replayed (measured "
-            "again, not chosen again)")
-    if not journal_path.exists():
-        kill_point("store-creating")                            # nothing written yet
-        write_json(journal_path, journal)
-        kill_point("store-created")                             # the empty journal in place, no step
-
-    def on_record(step: dict[str, Any], recorded: dict[str, Any] | None) -> None:
-        if recorded is not None:
-            _check_replayed(step, recorded, journal_path)
-            return
-        journal["steps"].append(step)
-        write_json(journal_path, journal)
-        kill_point("chunk-done")                                # one more step on disk
-
-    try:
-        rec = adaptive_material(U, sigma, geometry, truth, noise, device, target=target, budget=budget, seed=seed,
-                                light_dir=truth_store.light_dir if compare else None,
-                                view_dir=truth_store.view_dir if compare else None, sampling_steps=sampling_steps,
-                                plans_dir=out / "plans", predictor=predictor, weighting=weighting,
-                                replay=replay, on_record=on_record, time_aware=time_aware, measure=measure,
-                                n_tx=h * w)
-    except AwaitingShot as wait:                               # a dome's loop: the next shot is to be taken
-        plan = out / "plans" / f"step_{wait.step:03d}.json"
-        write_plan(adaptive_plan(device, [wait.group]), plan, plan.with_suffix(".csv"), device=device)
-        t, led = divmod(wait.group, geometry.n_leds)
-        return {"schema": "btf-adaptive-acquisition", "waiting": {
-            "step": wait.step, "turntable": int(t), "led": int(led), "plan": str(plan), "measurement": str(wait.path)},
-            "steps_done": len(journal["steps"]), "reused": {"steps": [len(replay), len(journal["steps"])]},
-            "finished_before": False}
-    plan_doc = write_plan(adaptive_plan(device, rec["groups"]), out / "plan.json", out / "plan.csv", device=device)
-    material = (attrs.get("material") or {}).get("material_id") or Path(str(where)).stem
-    summary = {"schema": "btf-adaptive-acquisition", "material": material, "class": cls, "target": target,
-               **({"truth": str(truth_path)} if measured is None else
-                  {"measured": str(measured), "exposure": dict(measure.exposures)}),   # steps whose gain is read
-               "model": str(model_path), "device": device.name,
-               "geometry": [geometry.n_turn, geometry.n_cam, geometry.n_leds], "record": rec,
-               "predicted_time_s": plan_doc["predicted_time"]["total_s"]}
-    paths = write_adaptive_report(out, summary)
-    journal["finished"] = True                                  # every output in place
-    write_json(journal_path, journal)
-    return {**summary, **paths, "reused": {"steps": [len(replay), len(rec["steps"])]}, "finished_before": False}
+_RULES = {"committee": "the one whose rows hold the most squared log-Y error as a committee of the other "
+                        "materials' ALS bases, fitted to the same measurements, sees it (where they disagree with "
+                        "the class basis).",
+          "posterior": "the one with the largest expected reduction of the coefficients' predicted error."}
 
 
 def adaptive_sections(section: dict[str, Any] | None) -> list[dict[str, Any]]:
@@ -756,11 +514,15 @@ def adaptive_sections(section: dict[str, Any] | None) -> list[dict[str, Any]]:
                      round(100 * last["predicted_cv"], 2), round(100 * n400["error"], 2),
                      round(rec["predicted_time"]["total_s"], 1)])
     share = bars["share_within_25pct"]
+    settings = next(iter(section["materials"].values())).get("settings", {})
     return [{"title": "Adaptive capture (leave-one-out; docs/adaptive-capture.md)",
              "text": ["Every held-out material captured one (turntable, LED) group at a time with its class's "
-                      "leave-one-out ALS basis, each next group the one with the largest expected reduction of the "
-                      "predicted error, to the budget of the thesis' n_s = 400 (scaled). The fixed samplings are "
-                      "on the same material, basis, Tikhonov solve and simulated noise.",
+                      "leave-one-out ALS basis, to the budget of the thesis' n_s = 400 (scaled); each next group "
+                      + _RULES.get(settings.get("select", "posterior"), "") + " Measured rows: "
+                      + ("fused with their measurements." if settings.get("measured_rows") == "fused" else
+                         "the basis' fit (paper 4 eq. 10).")
+                      + " The fixed samplings are on the same material, basis, Tikhonov solve, measured-row rule "
+                      "and simulated noise.",
                       f"Bar 1 (>= 2x fewer shots than fixed n_s = 400 to its error, every structured class): "
                       f"{'met' if bars['bar1_met'] else 'not met'}. Bar 2 (prediction at the stop within 25 % "
                       f"of the true error on >= 90 % of materials): {'met' if bars['bar2_met'] else 'not met'} "

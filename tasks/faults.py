@@ -13,7 +13,7 @@ point                             where
                                   ``btf acquire``: its empty step journal is in place
 ``chunk-done``                    the driver has awaited one more finished task, whose resume marker
                                   is on disk (:func:`tasks.compute.wait_all`); ``btf acquire``: one
-                                  more step is recorded in its journal (:func:`tasks.adaptive.open_journal`)
+                                  more step is recorded in its journal (:func:`tasks.adaptive_acquire.open_journal`)
 ``chunk-written``                 a worker task has written a chunk's data but not yet its resume
                                   marker (one line before each marker write), or computed a result
                                   whose record is its marker (an evaluation's scores record)

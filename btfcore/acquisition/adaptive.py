@@ -53,13 +53,21 @@ from btfcore.acquisition.reconstruct import LAMBDA_ALS
 from btfcore.acquisition.strategies import Geometry, row_groups
 from btfcore.model.colour import LOG_YUV_EPS, REC709_LUMA
 
-__all__ = ["PREDICTORS", "WEIGHTINGS", "AdaptiveResult", "AdaptiveState", "Step", "group_pairs", "group_rows",
-           "log_y_error", "run_adaptive", "shot_costs", "start_groups"]
+__all__ = ["MEASURED_ROWS", "PREDICTORS", "SELECTIONS", "WEIGHTINGS", "AdaptiveResult", "AdaptiveState", "Step",
+           "group_pairs", "group_rows", "fuse_measured", "log_y_error", "run_adaptive", "shot_costs", "start_groups"]
 
 #: The error predictors every step records; the first stops the loop (docs/adaptive-capture.md).
 PREDICTORS: tuple[str, ...] = ("posterior", "cv")
 #: Row weightings of the solve: paper 4's eq. 10 as is, or rows relative to their brightness.
 WEIGHTINGS: tuple[str, ...] = ("none", "relative")
+#: How the next group is chosen: the coefficients' posterior, or a committee of other bases (docs/adaptive-capture.md).
+SELECTIONS: tuple[str, ...] = ("posterior", "committee")
+#: The measured rows of the reconstruction: the basis' fit only, or fused with their measurements.
+MEASURED_ROWS: tuple[str, ...] = ("model", "fused")
+#: A committee member's vote is scaled by min(1, e0 / e_m) ** COMMITTEE_POWER, e the mean squared log
+#: residual of the measured rows (0: the class basis, m: the member): members that explain the
+#: measurements worse than the class basis count less (docs/adaptive-capture.md, "The next group").
+COMMITTEE_POWER = 3
 #: 'relative' weighting: rows darker than this fraction of the first group's brightness weigh as that.
 WEIGHT_FLOOR = 0.1
 #: Entries whose relative sensor noise exceeds this do not enter the estimate of the model residual.
@@ -68,6 +76,9 @@ NOISE_MASK = 0.1
 #: at most PREDICT_ENTRIES / n_lv (the thesis' 26,136 rows: 88 texels, 2.3 million entries).
 PREDICT_TEXELS = 512
 PREDICT_ENTRIES = 2_300_000
+#: Entries (rows x texels of that subset, every stride-th texel) each committee member is compared on: the
+#: committee's vote is a per-row mean, for which fewer texels suffice (issue 20's per-step overhead bar).
+COMMITTEE_ENTRIES = 400_000
 
 
 def log_y_error(recon_y: np.ndarray, truth_y: np.ndarray, eps: float = LOG_YUV_EPS) -> float:
@@ -150,13 +161,28 @@ class AdaptiveState:
         Texels of a measured row.
     seed : int
         Seed of the texel subset the predictor averages over.
+    weighting : {'none', 'relative'}
+        Row weights of the solve (:data:`WEIGHTINGS`).
+    committee : sequence of ((n_lv, k_m), (k_m,)) ndarray pairs
+        Other bases ``(U_m, sigma_m)`` of the model database, for :meth:`committee_gains`.
+    measured_rows : {'model', 'fused'}
+        :meth:`reconstruction` of the measured rows: the basis' fit (paper 4 eq. 10), or fused with
+        the measurements (:func:`fuse_measured`).
     """
 
     def __init__(self, U: np.ndarray, sigma: np.ndarray, geometry: Geometry, noise: SensorNoise, *,
-                 lam: float = LAMBDA_ALS, n_tx: int, seed: int = 0, weighting: str = "none") -> None:
-        if weighting not in WEIGHTINGS:
-            raise ValueError(f"weighting {weighting!r} is unknown; choose one of {', '.join(WEIGHTINGS)}")
-        self.weighting = weighting
+                 lam: float = LAMBDA_ALS, n_tx: int, seed: int = 0, weighting: str = "none",
+                 committee: Sequence[tuple[np.ndarray, np.ndarray]] = (), measured_rows: str = "model") -> None:
+        for name, value, known in (("weighting", weighting, WEIGHTINGS), ("measured_rows", measured_rows,
+                                                                          MEASURED_ROWS)):
+            if value not in known:
+                raise ValueError(f"{name} {value!r} is unknown; choose one of {', '.join(known)}")
+        self.weighting, self.measured_rows = weighting, measured_rows
+        self.committee = [(np.asarray(Uc, dtype=np.float64) * np.asarray(sc, dtype=np.float64)[None, :]
+                           ).astype(np.float32) for Uc, sc in committee]          # their fits in float32
+        for i, Xc in enumerate(self.committee):
+            if Xc.shape[0] != geometry.n_lv:
+                raise ValueError(f"committee basis {i} has {Xc.shape[0]} rows, the geometry {geometry.n_lv}")
         self.X = np.asarray(U, dtype=np.float64) * np.asarray(sigma, dtype=np.float64)[None, :]   # U Sigma
         self.sigma = np.asarray(sigma, dtype=np.float64)
         self.geometry, self.noise, self.lam = geometry, noise, float(lam)
@@ -175,8 +201,14 @@ class AdaptiveState:
         self.sub = np.sort(rng.choice(self.n_tx, n_sub, replace=False))
         self.y = np.zeros((0, n_sub, 3))                              # measured rows on the texel subset
         self.gain = np.zeros(0)                                       # electrons per unit radiance of each image
+        self.measured: list[np.ndarray] = []                          # full measured rows ('fused' only)
         self.w = np.zeros(0)                                          # weight of each measured row in the solve
         self.beta_ref = 0.0                                           # the first group's RMS luminance
+        # the committee's solves on every stride-th texel of the subset (COMMITTEE_ENTRIES), updated per group
+        self.committee_cols = slice(None, None, -(-n_sub // max(16, COMMITTEE_ENTRIES // self.n_lv)))
+        n_c = len(range(n_sub)[self.committee_cols])
+        self.committee_M = [self.lam ** 2 * np.eye(Xc.shape[1]) for Xc in self.committee]
+        self.committee_b = [np.zeros((Xc.shape[1], n_c)) for Xc in self.committee]
 
     # ------------------------------------------------------------------ update
 
@@ -209,6 +241,13 @@ class AdaptiveState:
         self.rows = np.concatenate([self.rows, rows])
         self.y = np.concatenate([self.y, y[:, self.sub]])
         self.gain = np.concatenate([self.gain, np.asarray(gain, dtype=np.float64)])
+        if self.measured_rows == "fused":
+            self.measured.append(y.astype(np.float32))
+        y_c = np.sqrt(w)[:, None] * (y[:, self.sub][:, self.committee_cols] @ REC709_LUMA)
+        for Xc, Mc, bc in zip(self.committee, self.committee_M, self.committee_b):
+            a = Xc[rows].astype(np.float64) * np.sqrt(w)[:, None]
+            Mc += a.T @ a                                             # rank-n_cam updates, as M's
+            bc += a.T @ y_c
 
     def _weights(self, beta: np.ndarray) -> np.ndarray:
         """Row weights of the solve: 1 (paper 4 eq. 10), or ``(beta_ref / beta)^2`` ('relative': each row's
@@ -227,6 +266,16 @@ class AdaptiveState:
     def coefficients(self) -> np.ndarray:
         """Basis coefficients :math:`C = \\Sigma D` ``(k, n_tx, 3)`` of linear RGB: :math:`\\hat B = U C`."""
         return (self.sigma[:, None] * self.D).reshape(self.k, self.n_tx, 3)
+
+    def reconstruction(self, model: dict | None = None) -> np.ndarray:
+        """The reconstruction ``(n_lv, n_tx, 3)`` of linear RGB: :math:`U C`, its measured rows fused with the
+        measurements where ``measured_rows='fused'`` (:func:`fuse_measured`; ``model``: the current
+        state's error model, computed when not given)."""
+        B = (self.X @ self.D).reshape(self.n_lv, self.n_tx, 3)
+        if self.measured_rows == "fused" and self.groups:
+            s2 = max(float((model or self._model())["s2"]), FUSE_S2_FLOOR)
+            B[self.rows] = fuse_measured(B[self.rows], np.concatenate(self.measured), self.gain, self.noise, s2)
+        return B
 
     # ------------------------------------------------------------------ prediction
 
@@ -335,6 +384,42 @@ class AdaptiveState:
         G = (self.X.T * w) @ self.X
         return self._gains(Minv, Q, G, N, m["w"])
 
+    def committee_gains(self, model: dict | None = None) -> np.ndarray:
+        """Squared log-Y error of each group's rows as a committee of other bases sees it (query by committee).
+
+        Each member :math:`X_m = U_m \\Sigma_m` is fitted to the measured rows by the loop's solve (same
+        weights and :math:`\\lambda`) on the predictor's texels (at most :data:`COMMITTEE_ENTRIES` entries,
+        every stride-th); its squared log-Y disagreement with the class basis' reconstruction,
+        scaled by :data:`COMMITTEE_POWER`'s vote, averaged over the members, estimates the error an
+        unmeasured entry holds that no more measurement elsewhere would remove: a structure the class
+        basis lacks. A group's gain is the sum over its rows of the texel mean, the error measuring it
+        removes where the measured rows are fused (``measured_rows='fused'``).
+
+        Returns
+        -------
+        gain : (n_groups,) ndarray
+            ``-inf`` for groups already measured.
+        """
+        if not self.committee:
+            raise ValueError("the committee selection needs other bases (committee=); none were given")
+        m = model or self._model()
+        eps = np.float32(LOG_YUV_EPS)
+        cols = self.committee_cols
+        # the fits and logs in float32 (their cost dominates; the disagreement needs no more digits)
+        log0 = np.log(np.maximum(m["Yhat"][:, cols].astype(np.float32), eps))
+        logm = np.log(np.maximum((self.y[:, cols] @ REC709_LUMA).astype(np.float32), eps))
+        e0 = float(np.mean((log0[self.rows] - logm) ** 2))
+        dis = np.zeros_like(log0)
+        for Xc, Mc, bc in zip(self.committee, self.committee_M, self.committee_b):
+            logc = np.log(np.maximum(Xc @ np.linalg.solve(Mc, bc).astype(np.float32), eps))   # eq. (10) of paper 4
+            vote = min(1.0, e0 / max(float(np.mean((logc[self.rows] - logm) ** 2)), 1e-300)) ** COMMITTEE_POWER
+            dis += vote * (logc - log0) ** 2
+        per_row = dis.mean(axis=1) / len(self.committee)
+        cand = np.setdiff1d(np.arange(self.n_groups), np.asarray(self.groups, dtype=np.int64))
+        out = np.full(self.n_groups, -np.inf)
+        out[cand] = per_row[group_rows(cand, self.geometry)].sum(axis=1)
+        return out
+
     def _gains(self, Minv: np.ndarray, Q: np.ndarray, G: np.ndarray, N: np.ndarray,
                w: np.ndarray | None = None) -> np.ndarray:
         cand = np.setdiff1d(np.arange(self.n_groups), np.asarray(self.groups, dtype=np.int64))
@@ -355,6 +440,45 @@ class AdaptiveState:
         out = np.full(self.n_groups, -np.inf)
         out[cand] = gain
         return out
+
+
+#: Floor of the relative model residual s^2 the fusion weighs the model with.
+FUSE_S2_FLOOR = 1e-6
+
+
+def fuse_measured(model: np.ndarray, measured: np.ndarray, gain: np.ndarray, noise: SensorNoise,
+                  s2: float) -> np.ndarray:
+    """Measured rows fused with the basis' fit of them: each entry the inverse-variance mean of two
+    estimates of its log, per channel with the luminance's weights.
+
+    The model's log has the variance :math:`s^2 \\max(1, \\beta_i / \\hat Y_{ij})^2` (the relative residual
+    ``s2``, growing where an entry is darker than its row's RMS :math:`\\beta_i`: a residual of the row's
+    scale is a large part of a dark entry), the measurement's :math:`v_{ij} / y_{ij}^2` (photon and read
+    noise at the image's gain; a value at or below zero carries no weight).
+
+    Parameters
+    ----------
+    model, measured : (n_rows, n_tx, 3) ndarray
+        The fit and the measurement of the rows, linear RGB.
+    gain : (n_rows,) ndarray
+        Electrons per unit radiance of each row's image.
+    noise : SensorNoise
+    s2 : float
+        Relative model residual :math:`s^2` (:meth:`AdaptiveState.predict`'s ``s`` squared).
+
+    Returns
+    -------
+    fused : (n_rows, n_tx, 3) ndarray
+    """
+    eps = LOG_YUV_EPS
+    Ym, y = model @ REC709_LUMA, measured @ REC709_LUMA
+    beta = np.sqrt(np.mean(Ym ** 2, axis=1, keepdims=True))
+    var_model = s2 * np.maximum(1.0, beta / np.maximum(Ym, eps)) ** 2
+    g = np.asarray(gain, dtype=np.float64)[:, None]
+    v = np.maximum(y, 0) / g + noise.read_noise_e ** 2 / g ** 2
+    var_meas = np.where(y > eps, v / np.maximum(y, eps) ** 2, np.inf)
+    weight = (var_model / (var_model + var_meas))[..., None]      # the measurement's weight
+    return np.exp((1 - weight) * np.log(np.maximum(model, eps)) + weight * np.log(np.maximum(measured, eps)))
 
 
 def shot_costs(groups: Sequence[int], geometry: Geometry, shot_s: float, move_s: float) -> np.ndarray:
@@ -390,7 +514,9 @@ def run_adaptive(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, noise: Se
                  predictor: str = "posterior", seed: int = 0, weighting: str = "relative",
                  score: Callable[[np.ndarray], float] | None = None,
                  on_step: Callable[[Step, np.ndarray], None] | None = None,
-                 replay: Sequence[int] = (), shot_s: float = 1.0, move_s: float = 0.0) -> AdaptiveResult:
+                 replay: Sequence[int] = (), shot_s: float = 1.0, move_s: float = 0.0,
+                 select: str = "posterior", committee: Sequence[tuple[np.ndarray, np.ndarray]] = (),
+                 measured_rows: str = "model") -> AdaptiveResult:
     """The closed loop: choose a group, measure it, update, predict, until target or budget.
 
     Parameters
@@ -417,7 +543,8 @@ def run_adaptive(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, noise: Se
     seed : int
         Seed of the predictor's texel subset.
     score : callable, optional
-        ``score(C) -> true error`` of the coefficients ``C`` (k, n_tx, 3); simulated data only.
+        ``score(B) -> true error`` of the reconstruction ``B`` (n_lv, n_tx, 3)
+        (:meth:`AdaptiveState.reconstruction`); simulated data only.
     on_step : callable, optional
         ``on_step(step, coefficients)`` after every step (plans, reports).
     replay : sequence of int, optional
@@ -430,6 +557,14 @@ def run_adaptive(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, noise: Se
         group is the one with the largest expected reduction *per unit of time*, ``gain / (shot_s +
         move_s [its turntable position is not the last shot's])`` (the time-aware choice: a move costs
         shots' worth of time); with ``move_s = 0`` (default) the largest expected reduction.
+    select : {'posterior', 'committee'}
+        The expected reduction: of the coefficients' error under the posterior (:meth:`AdaptiveState.gains`),
+        or of the error a committee of other bases sees in the group's rows
+        (:meth:`AdaptiveState.committee_gains`; needs ``committee``).
+    committee : sequence of (U_m, sigma_m)
+        Other bases of the model database.
+    measured_rows : {'model', 'fused'}
+        The reconstruction's measured rows (:meth:`AdaptiveState.reconstruction`).
 
     Returns
     -------
@@ -437,7 +572,13 @@ def run_adaptive(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, noise: Se
     """
     if predictor not in PREDICTORS:
         raise ValueError(f"predictor {predictor!r} is unknown; choose one of {', '.join(PREDICTORS)}")
-    state = AdaptiveState(U, sigma, geometry, noise, lam=lam, n_tx=n_tx, seed=seed, weighting=weighting)
+    if select not in SELECTIONS:
+        raise ValueError(f"select {select!r} is unknown; choose one of {', '.join(SELECTIONS)}")
+    if select == "committee" and not committee:
+        raise ValueError("select='committee' needs other bases (committee=); none were given")
+    state = AdaptiveState(U, sigma, geometry, noise, lam=lam, n_tx=n_tx, seed=seed, weighting=weighting,
+                          committee=committee, measured_rows=measured_rows)
+    gains = state.committee_gains if select == "committee" else state.gains
     budget = int(min(budget, state.n_groups))
     if budget < 1:
         raise ValueError(f"the shot budget must be >= 1, got {budget}")
@@ -454,7 +595,7 @@ def run_adaptive(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, noise: Se
         elif len(state.groups) < n0:
             group = first[len(state.groups)]
         else:
-            group = int(np.argmax(state.gains(model) / shot_costs(state.groups, geometry, shot_s, move_s)))
+            group = int(np.argmax(gains(model) / shot_costs(state.groups, geometry, shot_s, move_s)))
         rows = state.rows_of(group)
         t_choose = time.process_time() - t0
         y, gain = measure(group, rows)
@@ -463,13 +604,12 @@ def run_adaptive(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, noise: Se
         model = state._model()
         pred = state.predict(model)
         cpu = t_choose + time.process_time() - t0
-        C = state.coefficients()
         t, led = divmod(group, geometry.n_leds)
         step = Step(len(steps), group, int(t), int(led), rows.tolist(), len(state.groups), pred["posterior"],
-                    pred["cv"], None if score is None else float(score(C)), pred["s"], cpu)
+                    pred["cv"], None if score is None else float(score(state.reconstruction(model))), pred["s"], cpu)
         steps.append(step)
         if on_step is not None:
-            on_step(step, C)
+            on_step(step, state.coefficients())
         if len(state.groups) >= n0 and pred[predictor] <= target:
             stopped = "target"
             break
@@ -479,6 +619,8 @@ def run_adaptive(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, noise: Se
     return AdaptiveResult(steps, stopped, np.asarray(state.groups, dtype=np.int64), state.rows.copy(),
                           state.coefficients(), {"target": target, "budget": budget, "lam": lam, "n_start": n0,
                                                  "predictor": predictor, "weighting": weighting, "k": state.k,
+                                                 "select": select, "measured_rows": measured_rows,
+                                                 "committee": len(committee),
                                                  "n_cam": geometry.n_cam,
                                                  **({"shot_s": shot_s, "move_s": move_s} if move_s else {})},
                           replayed=len(replay))

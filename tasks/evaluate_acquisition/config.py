@@ -7,6 +7,7 @@ import json
 from dataclasses import asdict, dataclass
 from typing import Any
 
+from btfcore.acquisition.adaptive import MEASURED_ROWS, SELECTIONS
 from btfcore.dome import DEVICE_NAMES, Device, get_device
 from btfcore.simulate.materials import MATERIAL_CLASSES
 from btfcore.simulate.nonideal import IDEAL, DomeNonIdeality
@@ -64,6 +65,12 @@ class EvaluationConfig:
     adaptive : bool
         Also run the adaptive-capture loop on every held-out material (issue 20,
         docs/adaptive-capture.md; about a sixth of the run). Not part of the scores key.
+    adaptive_select : {'committee', 'posterior'}
+        How the loop chooses the next group (:data:`btfcore.acquisition.adaptive.SELECTIONS`); the
+        committee is every other material's ALS basis. Not part of the scores key.
+    adaptive_rows : {'fused', 'model'}
+        The loop's and the fixed samplings' measured rows: fused with the measurements, or the basis'
+        fit only (:data:`btfcore.acquisition.adaptive.MEASURED_ROWS`). Not part of the scores key.
     non_ideal : DomeNonIdeality
         The dome's non-idealities applied to the simulated measurements
         (:mod:`btfcore.acquisition.nonideal_measurement`); the ideal dome by
@@ -86,6 +93,8 @@ class EvaluationConfig:
     render_size: int = 64
     keep_reconstructions: bool = False
     adaptive: bool = True
+    adaptive_select: str = "committee"
+    adaptive_rows: str = "fused"
     non_ideal: DomeNonIdeality = IDEAL
 
     def __post_init__(self) -> None:
@@ -108,6 +117,9 @@ class EvaluationConfig:
                             f"got {self.render_materials}")
         if not 0 < self.abrdf_k_fraction <= 1:
             problems.append(f"abrdf_k_fraction must lie in (0, 1], got {self.abrdf_k_fraction}")
+        for name, known in (("adaptive_select", SELECTIONS), ("adaptive_rows", MEASURED_ROWS)):
+            if getattr(self, name) not in known:
+                problems.append(f"{name} {getattr(self, name)!r} is unknown; choose one of {', '.join(known)}")
         if not isinstance(self.non_ideal, DomeNonIdeality):
             problems.append(f"non_ideal must be a DomeNonIdeality, got {type(self.non_ideal).__name__}")
         if problems:

@@ -51,7 +51,8 @@ RESULTS_VERSION = 4
 MODEL_DATABASE_VERSION = 1
 
 #: Config fields that only affect what is rendered, kept or added beside the scores, not the scores.
-_RENDER_FIELDS = ("render_materials", "render_size", "keep_reconstructions", "adaptive")
+_RENDER_FIELDS = ("render_materials", "render_size", "keep_reconstructions", "adaptive", "adaptive_select",
+                  "adaptive_rows")
 
 
 def _hash(payload: Any) -> str:

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from btfcore.acquisition.adaptive import (AdaptiveState, group_rows, log_y_error, run_adaptive, shot_costs,
-                                         start_groups)
+from btfcore.acquisition.adaptive import (AdaptiveState, fuse_measured, group_rows, log_y_error, run_adaptive,
+                                         shot_costs, start_groups)
 from btfcore.acquisition.noise import SensorNoise, exposure_gain, expose
 from btfcore.acquisition.strategies import Geometry
 
@@ -110,7 +110,7 @@ def test_each_chosen_group_reduces_the_expected_error():
 
 def test_stops_at_the_target_and_is_seeded():
     U, sigma, truth = _problem(2)
-    kw = dict(n_tx=truth.shape[1], budget=32, seed=3, score=lambda C: log_y_error(U @ C[..., 0], _truth_y(truth)))
+    kw = dict(n_tx=truth.shape[1], budget=32, seed=3, score=lambda B: log_y_error(B[..., 0], _truth_y(truth)))
     free = run_adaptive(U, sigma, GEOMETRY, NOISE, _measure(truth, 3), target=1e-9, **kw)
     assert free.stopped == "budget" and len(free.steps) == 32
     preds = [s.predicted for s in free.steps]
@@ -164,7 +164,7 @@ def test_replaying_recorded_groups_gives_the_same_run_without_choosing_them(monk
     choice equal the uninterrupted run's, and the gains are computed only for the steps after them."""
     U, sigma, truth = _problem(4)
     kw = dict(n_tx=truth.shape[1], target=1e-9, budget=12, seed=5,
-              score=lambda C: log_y_error(U @ C[..., 0], _truth_y(truth)))
+              score=lambda B: log_y_error(B[..., 0], _truth_y(truth)))
     calls = []
     gains = AdaptiveState.gains
     monkeypatch.setattr(AdaptiveState, "gains", lambda self, model=None: calls.append(1) or gains(self, model))
@@ -184,3 +184,71 @@ def test_replaying_recorded_groups_gives_the_same_run_without_choosing_them(monk
         np.testing.assert_array_equal(again.groups, full.groups)
     with pytest.raises(ValueError, match="not recorded by a run of these inputs"):
         run_adaptive(U, sigma, GEOMETRY, NOISE, _measure(truth, 5), replay=full.groups, **{**kw, "budget": 8})
+
+
+def _bump_problem(seed: int = 6):
+    """A class basis that lacks a lobe on the rows of two groups, a committee member that has it (coupled to
+    its first vector, as another material's basis couples a lobe to the rows it shares), and a truth with it."""
+    U, sigma, truth = _problem(seed)
+    lobe_groups = np.array([5, 21])
+    p = np.zeros(GEOMETRY.n_lv)
+    p[group_rows(lobe_groups, GEOMETRY).ravel()] = 1.0
+    d0 = U[:, 0] @ truth[..., 0]                                  # the first vector's coefficients
+    bumped = truth.copy()
+    bumped[..., :] += 2.0 * np.abs(p[:, None] * d0[None, :] * np.abs(U[:, 0]).max())[..., None]
+    member = U.copy()
+    member[:, 0] = U[:, 0] + 2.0 * p * np.abs(U[:, 0]).max() * np.sign(d0.mean())
+    return U, sigma, bumped, [(member, sigma)], lobe_groups
+
+
+def test_committee_gains_point_at_what_the_class_basis_lacks():
+    U, sigma, truth, committee, lobe_groups = _bump_problem()
+    st = AdaptiveState(U, sigma, GEOMETRY, NOISE, n_tx=truth.shape[1], committee=committee)
+    measure = _measure(truth, 0)
+    for g in start_groups(U, sigma, GEOMETRY, 4):
+        assert g not in lobe_groups
+        st.add(g, *measure(g, st.rows_of(g)))
+    gain = st.committee_gains()
+    assert np.argmax(gain) in lobe_groups and set(np.argsort(-gain)[:2]) == set(lobe_groups.tolist())
+    assert np.all(gain[st.groups] == -np.inf)
+    same = AdaptiveState(U, sigma, GEOMETRY, NOISE, n_tx=truth.shape[1], committee=[(U, sigma)])
+    for g in st.groups:
+        same.add(g, *measure(g, same.rows_of(g)))
+    np.testing.assert_allclose(same.committee_gains()[np.isfinite(gain)], 0.0, atol=1e-12)   # no disagreement
+
+
+def test_committee_and_fused_rows_beat_the_posterior_on_a_missing_lobe():
+    """Where the class basis lacks a lobe, choosing by the committee and keeping the measured rows removes
+    the lobe's error; the posterior, blind to it, keeps it."""
+    U, sigma, truth, committee, lobe_groups = _bump_problem()
+    score = lambda B: log_y_error(B[..., 0], _truth_y(truth))        # noqa: E731
+    kw = dict(n_tx=truth.shape[1], target=0.0, budget=8, seed=1, score=score)
+    plain = run_adaptive(U, sigma, GEOMETRY, NOISE, _measure(truth, 2), **kw)
+    qbc = run_adaptive(U, sigma, GEOMETRY, NOISE, _measure(truth, 2), select="committee", committee=committee,
+                       measured_rows="fused", **kw)
+    assert set(lobe_groups.tolist()) <= set(qbc.groups.tolist())
+    assert qbc.steps[-1].true < 0.5 * plain.steps[-1].true
+    assert qbc.settings["select"] == "committee" and qbc.settings["committee"] == 1
+    with pytest.raises(ValueError, match="committee"):
+        run_adaptive(U, sigma, GEOMETRY, NOISE, _measure(truth, 2), select="committee", **kw)
+    with pytest.raises(ValueError, match="measured_rows"):
+        AdaptiveState(U, sigma, GEOMETRY, NOISE, n_tx=4, measured_rows="both")
+
+
+def test_fused_rows_weigh_model_and_measurement_by_their_log_variances():
+    noise = SensorNoise()
+    rng = np.random.default_rng(0)
+    model = rng.uniform(0.2, 1.0, (3, 16, 3))
+    measured = model * 1.5                                            # the model is 1.5x off
+    gain = np.array([1e3, 1e5, 1e7])                                  # noisy to nearly noise-free images
+    fused = fuse_measured(model, measured, gain, noise, s2=0.01)
+    y = measured @ np.array([0.2126, 0.7152, 0.0722])
+    ym = model @ np.array([0.2126, 0.7152, 0.0722])
+    var_model = 0.01 * np.maximum(1, np.sqrt(np.mean(ym ** 2, axis=1, keepdims=True)) / ym) ** 2
+    var_meas = (y / gain[:, None] + noise.read_noise_e ** 2 / gain[:, None] ** 2) / y ** 2
+    w = (var_model / (var_model + var_meas))[..., None]
+    np.testing.assert_allclose(np.log(fused), (1 - w) * np.log(model) + w * np.log(measured), rtol=1e-12)
+    err = np.abs(np.log(fused / measured)).mean(axis=(1, 2))
+    assert err[0] > err[1] > err[2] and err[2] < 1e-3                # the cleaner the image, the closer to it
+    dark = fuse_measured(model, -measured, gain, noise, s2=0.01)      # a value at or below zero carries no weight
+    np.testing.assert_allclose(dark, model, rtol=1e-12)

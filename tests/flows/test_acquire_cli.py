@@ -47,9 +47,17 @@ def test_acquire_adaptive_tiny(acquisition_evaluation, model_report, run_btf, tm
     assert code == 0, err
     timed = json.loads((tmp_path / "timed" / "report.json").read_text())["record"]
     assert timed["settings"]["move_s"] == 5.0 and timed["settings"]["shot_s"] > 0
+
     moves = [sum(a["turntable"] != b["turntable"] for a, b in zip(r["steps"], r["steps"][1:]))
              for r in (timed, doc["record"])]
     assert moves[0] <= moves[1], moves
+    # the default: the committee of the model's other per-material bases, the measured rows fused
+    import zarr
+    own = truth.stem
+    n_other = sum(1 for m in zarr.open_group(model_report / "model.zarr", mode="r")["materials"].group_keys()
+                  if m != own)
+    assert doc["record"]["settings"]["select"] == "committee" and doc["record"]["settings"]["committee"] == n_other
+    assert doc["record"]["settings"]["measured_rows"] == "fused"
 
 
 def test_acquire_needs_adaptive_and_a_valid_target(acquisition_evaluation, model_report, run_btf, tmp_path):
@@ -93,7 +101,8 @@ def test_a_dome_closes_the_loop_through_the_plan_files(acquisition_evaluation, m
     replays the finished steps from their stores and goes on, until the budget."""
     out, measured = tmp_path / "acq", tmp_path / "measured"
     loop = ("acquire", "--adaptive", "--target-error", "0.01", "--budget", "2", "--measured", measured, "--model",
-            model_report, "--class", "carpet", "--device", "tiny", "--out", out)
+            model_report, "--class", "carpet", "--device", "tiny", "--select", "posterior", "--rows", "model",
+            "--out", out)
     for step in range(2):
         code, stdout, err = run_btf(*loop)
         assert code == 0, err
@@ -110,7 +119,10 @@ def test_a_dome_closes_the_loop_through_the_plan_files(acquisition_evaluation, m
     summary = json.loads(stdout)
     # step 0 replayed from its store, step 1 measured now
     assert summary["shots"] == 2 and summary["true_error"] is None and summary["reused"]["steps"] == [1, 2]
-    steps = json.loads((out / "report.json").read_text())["record"]["steps"]
+    record = json.loads((out / "report.json").read_text())["record"]
+    assert (record["settings"]["select"], record["settings"]["committee"], record["settings"]["measured_rows"]) == (
+        "posterior", 0, "model")                   # the earlier loop: no committee, every row from the basis
+    steps = record["steps"]
     for k, s in enumerate(steps):                  # each step measured what its plan file asked for
         shot = json.loads((out / "plans" / f"step_{k:03d}.json").read_text())["shots"][0]
         assert (shot["turntable"], shot["leds"]) == (s["turntable"], [s["led"]])

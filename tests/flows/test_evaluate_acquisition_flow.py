@@ -66,6 +66,10 @@ def test_flow_writes_every_strategy_and_claim(acquisition_evaluation):
     assert list(adaptive["materials"]) == list(report["materials"]) and adaptive["bars"]
     assert all(rec["n_shots"] >= 1 and rec["steps"] for rec in adaptive["materials"].values())
     assert (out / adaptive["figure"]).is_file() and "Adaptive capture (leave-one-out" in html
+    # the default: a committee of every other material's ALS basis, the measured rows fused
+    n_materials = len(report["materials"])
+    assert all(rec["settings"]["select"] == "committee" and rec["settings"]["committee"] == n_materials - 1
+               and rec["settings"]["measured_rows"] == "fused" for rec in adaptive["materials"].values())
 
 
 def test_cli_evaluate_acquisition_needs_db_and_out(capsys):

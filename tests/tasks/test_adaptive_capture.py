@@ -69,3 +69,37 @@ def test_bars_count_shots_to_the_fixed_error():
     records["c"] = rec("stone", [0.5, 0.4, 0.3, 0.3], 0.25, 0.3)           # never reaches it: its budget counts
     bars = adaptive_bars(records)
     assert bars["shots_to_fixed_n400"]["stone"]["never"] == 1 and not bars["bar1_met"]
+
+
+def test_committee_is_every_other_materials_als_basis(tmp_path):
+    """tasks.adaptive.committee_bases on a real model store: every materials/<id>/als but the excluded one's,
+    in material order; other bases and a store without materials give none."""
+    import zarr
+
+    from tasks.adaptive import committee_bases
+    from tasks.model import write_basis
+    from btfcore.model._lowrank import TruncatedSVD
+
+    group = zarr.open_group(tmp_path / "model.zarr", mode="w", zarr_format=3)
+    assert committee_bases(group) == []
+    rng = np.random.default_rng(0)
+    fits = {}
+    for mid in ("002-wood", "000-leather", "001-cloth"):
+        U, s = np.linalg.qr(rng.normal(size=(20, 3)))[0], np.array([3.0, 2.0, 1.0])
+        fits[mid] = U
+        write_basis(group, f"materials/{mid}/als", TruncatedSVD(U, s, "test", {}, 0, 0.0, True, 0.0, None), "k")
+        write_basis(group, f"materials/{mid}/log_y", TruncatedSVD(U, s, "test", {}, 0, 0.0, True, 0.0, None), "k")
+    got = committee_bases(zarr.open_group(tmp_path / "model.zarr", mode="r", zarr_format=3), exclude="001-cloth")
+    assert len(got) == 2
+    np.testing.assert_allclose(got[0][0], fits["000-leather"])
+    np.testing.assert_allclose(got[1][0], fits["002-wood"])
+    np.testing.assert_allclose(got[0][1], [3.0, 2.0, 1.0])
+
+
+def test_evaluation_config_names_an_unknown_adaptive_choice():
+    from tasks.evaluate_acquisition import EvaluationConfig
+
+    with pytest.raises(ValueError, match="adaptive_select 'oracle' is unknown; choose one of posterior, committee"):
+        EvaluationConfig(adaptive_select="oracle")
+    with pytest.raises(ValueError, match="adaptive_rows 'both' is unknown; choose one of model, fused"):
+        EvaluationConfig(adaptive_rows="both")
