@@ -12,9 +12,15 @@ group is one shot and ``n_cam`` rows of ``B``. The loop (:func:`run_adaptive`):
    model and a relative model residual estimated from this material's own residuals, and, as a
    cross-check, the leave-one-group-out cross-validation error of the measured rows;
 3. stops when the prediction reaches the target or the shot budget is spent; otherwise
-4. **chooses** the group whose measurement most reduces the expected squared log-Y error of the
-   coefficients given the measurements so far (:meth:`AdaptiveState.gains`, exact rank-``n_cam``
-   updates of the error covariance, vectorised over all candidate groups).
+4. **chooses** the next group: by default where a committee of other bases of the model database,
+   fitted to the same measurements, disagrees most with the class basis (:meth:`AdaptiveState.committee_gains`,
+   query by committee: the error a structure the class basis lacks leaves), or the group whose measurement
+   most reduces the expected squared log-Y error of the coefficients (:meth:`AdaptiveState.gains`, exact
+   rank-``n_cam`` updates of the error covariance, vectorised over all candidate groups).
+
+The reconstruction's measured rows are either the basis' fit (paper 4 eq. 10) or fused with their
+measurements (:func:`fuse_measured`, :meth:`AdaptiveState.reconstruction`). The predictor's model residual
+comes from the start design's rows only (groups chosen before any data, an unbiased sample).
 
 Model (per texel ``j``; ``x_i`` the row ``i`` of :math:`U\\Sigma`, coefficients :math:`c = \\Sigma d`):
 
@@ -204,6 +210,7 @@ class AdaptiveState:
         self.measured: list[np.ndarray] = []                          # full measured rows ('fused' only)
         self.w = np.zeros(0)                                          # weight of each measured row in the solve
         self.beta_ref = 0.0                                           # the first group's RMS luminance
+        self.unbiased_groups = 0                                      # first groups the predictor's s^2 uses (0: all)
         # the committee's solves on every stride-th texel of the subset (COMMITTEE_ENTRIES), updated per group
         self.committee_cols = slice(None, None, -(-n_sub // max(16, COMMITTEE_ENTRIES // self.n_lv)))
         n_c = len(range(n_sub)[self.committee_cols])
@@ -296,8 +303,11 @@ class AdaptiveState:
         # in dark entries the log residual is the sensor's noise, which the reconstruction averages out
         rel_noise = v / np.maximum(ys, eps) ** 2
         good = rel_noise < NOISE_MASK ** 2
-        dof = max(float(np.sum((1.0 - H)[:, None] * good)), 1.0)
-        s2 = max(float(np.sum((e ** 2 - rel_noise) * good)) / dof, 0.0)     # relative model residual
+        s2 = self._residual(e, rel_noise, good, H, slice(None))        # relative model residual
+        # the predictor's: from the rows of the first groups only, chosen before any data; later groups are
+        # chosen where the model is worst (or least certain), a biased sample of the residual
+        s2_pred = self._residual(e, rel_noise, good, H, slice(0, self.unbiased_groups * self.geometry.n_cam)) \
+            if self.unbiased_groups else s2
         beta2 = np.mean(Yhat ** 2, axis=1)                            # (n_lv,) row brightness^2
         # predicted noise of an unmeasured image at an ideal auto exposure (its brightest value at fill)
         g_all = exposure_gain(np.maximum(np.max(np.abs(Yhat), axis=1), eps), self.noise)
@@ -308,8 +318,15 @@ class AdaptiveState:
         w_all[self.rows] = self.w
         inv2 = 1.0 / np.maximum(np.abs(Yhat), eps) ** 2                  # (n_lv, n_sub) 1 / Yhat^2
         tex = np.mean(Yhat ** 2, axis=0) / max(float(np.mean(beta2)), 1e-300)      # (n_sub,) texel brightness^2
-        return {"Minv": Minv, "Dy": Dy, "Yhat": Yhat, "e": e, "H": H, "s2": s2, "N": N, "beta2": beta2,
-                "w": w_all, "inv2": inv2, "tex": tex}
+        return {"Minv": Minv, "Dy": Dy, "Yhat": Yhat, "e": e, "H": H, "s2": s2, "s2_pred": s2_pred, "N": N,
+                "N_pred": N + (s2_pred - s2) * beta2, "beta2": beta2, "w": w_all, "inv2": inv2, "tex": tex}
+
+    @staticmethod
+    def _residual(e: np.ndarray, rel_noise: np.ndarray, good: np.ndarray, H: np.ndarray, rows: slice) -> float:
+        """:math:`s^2`: the leverage-corrected mean squared log residual of the well-exposed entries of the
+        measured ``rows``, their relative sensor noise subtracted."""
+        dof = max(float(np.sum((1.0 - H[rows])[:, None] * good[rows])), 1.0)
+        return max(float(np.sum((e[rows] ** 2 - rel_noise[rows]) * good[rows])) / dof, 0.0)
 
     def predict(self, model: dict | None = None) -> dict[str, float]:
         """Predicted relative L2 error of log Y over all rows, without the truth.
@@ -323,7 +340,7 @@ class AdaptiveState:
             ``s``: the estimated relative model residual :math:`s`.
         """
         m = model or self._model()
-        Minv, Yhat, e, N = m["Minv"], m["Yhat"], m["e"], m["N"]
+        Minv, Yhat, N, s2 = m["Minv"], m["Yhat"], m["N_pred"], m["s2_pred"]
         A = self.X[self.rows] * np.sqrt(self.w)[:, None]
         Cov = Minv @ (A.T * (self.w * N[self.rows])) @ A @ Minv       # sandwich: M^-1 A^T W N W A M^-1
         q = np.sum((self.X @ Cov) * self.X, axis=1)                   # (n_lv,) x_i Cov x_i^T
@@ -331,13 +348,13 @@ class AdaptiveState:
         tex, inv2 = m["tex"], m["inv2"]
         unmeasured = np.ones(self.n_lv, dtype=bool)
         unmeasured[self.rows] = False
-        var_u = m["s2"] + (q[unmeasured, None] * tex[None, :] + bias[unmeasured] ** 2) * inv2[unmeasured]
+        var_u = s2 + (q[unmeasured, None] * tex[None, :] + bias[unmeasured] ** 2) * inv2[unmeasured]
         var_u = np.minimum(var_u, np.log(1 / LOG_YUV_EPS) ** 2)       # a log error is at most the log range
         ss = float(np.sum(np.log(np.maximum(Yhat, LOG_YUV_EPS)) ** 2))
-        measured = float(np.sum(m["s2"] * (1.0 - m["H"]))) * len(self.sub)   # measured rows: s^2 (1 - h_mm)
+        measured = float(np.sum(s2 * (1.0 - m["H"]))) * len(self.sub)   # measured rows: s^2 (1 - h_mm)
         post = np.sqrt((measured + float(np.sum(var_u))) / ss)
         cv = np.sqrt((measured + self._cv_row_mse(m) * unmeasured.sum() * len(self.sub)) / ss)
-        return {"posterior": float(post), "cv": float(cv), "s": float(np.sqrt(m["s2"]))}
+        return {"posterior": float(post), "cv": float(cv), "s": float(np.sqrt(s2))}
 
     def _cv_row_mse(self, m: dict) -> float:
         """Mean squared log-Y error of the measured groups, each predicted from the others (exact for the
@@ -583,6 +600,7 @@ def run_adaptive(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, noise: Se
     if budget < 1:
         raise ValueError(f"the shot budget must be >= 1, got {budget}")
     n0 = min(budget, n_start if n_start is not None else int(np.ceil(2 * state.k / geometry.n_cam)))
+    state.unbiased_groups = n0                                        # the start design, chosen before any data
     replay = [int(g) for g in replay]
     first = start_groups(U, sigma, geometry, n0, lam) if len(replay) < n0 else []
     steps: list[Step] = []

@@ -229,6 +229,14 @@ def test_committee_and_fused_rows_beat_the_posterior_on_a_missing_lobe():
     assert set(lobe_groups.tolist()) <= set(qbc.groups.tolist())
     assert qbc.steps[-1].true < 0.5 * plain.steps[-1].true
     assert qbc.settings["select"] == "committee" and qbc.settings["committee"] == 1
+    # the predictor's residual comes from the start design's rows, not from the lobe's rows chosen for their error
+    st = AdaptiveState(U, sigma, GEOMETRY, NOISE, n_tx=truth.shape[1], weighting="relative")
+    for g in qbc.groups:
+        st.add(int(g), *_measure(truth, 2)(int(g), st.rows_of(int(g))))
+    s2_all = st._model()["s2"]
+    st.unbiased_groups = qbc.settings["n_start"]
+    assert qbc.steps[-1].residual_s == pytest.approx(np.sqrt(st._model()["s2_pred"]), rel=1e-9)
+    assert qbc.steps[-1].residual_s < 0.5 * np.sqrt(s2_all)
     with pytest.raises(ValueError, match="committee"):
         run_adaptive(U, sigma, GEOMETRY, NOISE, _measure(truth, 2), select="committee", **kw)
     with pytest.raises(ValueError, match="measured_rows"):
