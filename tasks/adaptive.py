@@ -269,7 +269,7 @@ def adaptive_material(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, trut
         truth = np.asarray(truth, dtype=np.float32).reshape(truth.shape[0], -1, 3)
         measure, n_tx = simulated_measure(truth, noise, [seed, 0]), truth.shape[1]
 
-    def on_step(step: Any, _: np.ndarray) -> None:
+    def on_step(step: Any) -> None:
         recorded = replay[step.step] if step.step < len(replay) else None
         if plans_dir is not None:
             path = plans_dir / f"step_{step.step:03d}.json"

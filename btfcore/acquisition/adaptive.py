@@ -240,19 +240,21 @@ class AdaptiveState:
         rows = self.rows_of(group)
         y = np.asarray(measured, dtype=np.float64).reshape(len(rows), self.n_tx, 3)
         w = self._weights(np.sqrt(np.mean((y @ REC709_LUMA) ** 2, axis=1)))
-        a = self.X[rows] * np.sqrt(w)[:, None]                        # (n_cam, k) weighted rows
+        sw = np.sqrt(w)[:, None]
+        a = self.X[rows] * sw                                         # (n_cam, k) weighted rows
         self.M += a.T @ a                                             # rank-n_cam update
-        self.b += a.T @ (np.sqrt(w)[:, None] * y.reshape(len(rows), -1))
+        self.b += a.T @ (sw * y.reshape(len(rows), -1))
+        y_sub = y[:, self.sub]
         self.w = np.concatenate([self.w, w])
         self.groups.append(int(group))
         self.rows = np.concatenate([self.rows, rows])
-        self.y = np.concatenate([self.y, y[:, self.sub]])
+        self.y = np.concatenate([self.y, y_sub])
         self.gain = np.concatenate([self.gain, np.asarray(gain, dtype=np.float64)])
         if self.measured_rows == "fused":
             self.measured.append(y.astype(np.float32))
-        y_c = np.sqrt(w)[:, None] * (y[:, self.sub][:, self.committee_cols] @ REC709_LUMA)
+        y_c = sw * (y_sub[:, self.committee_cols] @ REC709_LUMA)
         for Xc, Mc, bc in zip(self.committee, self.committee_M, self.committee_b):
-            a = Xc[rows].astype(np.float64) * np.sqrt(w)[:, None]
+            a = Xc[rows].astype(np.float64) * sw
             Mc += a.T @ a                                             # rank-n_cam updates, as M's
             bc += a.T @ y_c
 
@@ -530,7 +532,7 @@ def run_adaptive(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, noise: Se
                  target: float, budget: int, lam: float = LAMBDA_ALS, n_start: int | None = None,
                  predictor: str = "posterior", seed: int = 0, weighting: str = "relative",
                  score: Callable[[np.ndarray], float] | None = None,
-                 on_step: Callable[[Step, np.ndarray], None] | None = None,
+                 on_step: Callable[[Step], None] | None = None,
                  replay: Sequence[int] = (), shot_s: float = 1.0, move_s: float = 0.0,
                  select: str = "posterior", committee: Sequence[tuple[np.ndarray, np.ndarray]] = (),
                  measured_rows: str = "model") -> AdaptiveResult:
@@ -563,7 +565,8 @@ def run_adaptive(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, noise: Se
         ``score(B) -> true error`` of the reconstruction ``B`` (n_lv, n_tx, 3)
         (:meth:`AdaptiveState.reconstruction`); simulated data only.
     on_step : callable, optional
-        ``on_step(step, coefficients)`` after every step (plans, reports).
+        ``on_step(step)`` after every step (plans, reports); the coefficients of every texel are solved
+        for once, at the stop (:attr:`AdaptiveResult.coefficients`).
     replay : sequence of int, optional
         Groups of the first steps, taken as given instead of chosen (neither the start design nor the
         gains are computed for them): the groups a killed run recorded. Each is measured and added
@@ -627,7 +630,7 @@ def run_adaptive(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, noise: Se
                     pred["cv"], None if score is None else float(score(state.reconstruction(model))), pred["s"], cpu)
         steps.append(step)
         if on_step is not None:
-            on_step(step, state.coefficients())
+            on_step(step)
         if len(state.groups) >= n0 and pred[predictor] <= target:
             stopped = "target"
             break

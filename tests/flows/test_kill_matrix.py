@@ -143,7 +143,8 @@ class Btf:
         Its nanny restarts it. Once in a full suite (seen in CI and locally, never with this module alone) the
         restart did not happen: the session's cluster kept one worker, a later test saw one too few and a later
         worker kill left none, so its command waited for ever. Where no successor registers within 60 s, the
-        session's LocalCluster is scaled up by the missing workers, with a warning in the test report."""
+        session's LocalCluster replaces the stuck worker specs (their nannies are closed, so a late restart cannot
+        leave a surplus worker), with a warning in the test report."""
         def missing() -> int:
             pids = self.worker_pids()
             return max(n_workers - len(pids), pids.count(killed_pid))
@@ -156,9 +157,14 @@ class Btf:
                 return
             if attempt == 0:
                 warnings.warn(f"the nanny did not replace the killed Dask worker {killed_pid} within 60 s; "
-                              "scaling the session's LocalCluster up instead")
+                              "replacing its spec in the session's LocalCluster instead")
                 cluster = self.client.cluster
-                cluster.scale(len(cluster.worker_spec) + missing())
+                alive = set(self.client.run_on_scheduler(
+                    lambda dask_scheduler: [w.name for w in dask_scheduler.workers.values()]))
+                for name in [n for n in cluster.worker_spec if n not in alive]:
+                    del cluster.worker_spec[name]
+                cluster.sync(cluster._correct_state)      # closes the stuck nannies: no late restart
+                cluster.scale(n_workers)                  # fresh ones in their place
         raise AssertionError(f"the killed worker was not replaced: workers {self.worker_pids()}")
 
     def worker_pids(self) -> list[int]:
