@@ -71,6 +71,25 @@ def test_bars_count_shots_to_the_fixed_error():
     assert bars["shots_to_fixed_n400"]["stone"]["never"] == 1 and not bars["bar1_met"]
 
 
+def test_report_shows_both_comparisons():
+    """The report's class table holds the bar's ratio (same solve) and the ratio to the evaluation's own
+    paper-4 reconstruction of fixed n_s = 400 (``fixed_n400_evaluation``), '-' where that is not recorded."""
+    from tasks.adaptive import adaptive_sections
+
+    def rec(cls, trues, fixed, paper4):
+        steps = [{"n_shots": i + 1, "true": t, "predicted": t, "predicted_cv": t} for i, t in enumerate(trues)]
+        return {"class": cls, "n_shots": len(trues), "steps": steps, "fixed_n400_evaluation": paper4,
+                "fixed": [{"n_thesis": 400, "n_shots": 8, "error": fixed}], "predicted_time": {"total_s": 1.0}}
+    records = {"a": rec("carpet", [0.5, 0.3, 0.2, 0.1], 0.15, 0.4), "b": rec("stone", [0.5, 0.3], 0.25, None)}
+    bars = adaptive_bars(records)
+    assert bars["shots_to_fixed_n400"]["carpet"]["ratio"] == 2.0                # 8 / 4 shots to 0.15
+    assert bars["shots_to_fixed_n400"]["carpet"]["ratio_evaluation"] == 4.0     # 8 / 2 shots to 0.4
+    table = adaptive_sections({"bars": bars, "materials": records, "figure": "f.png"})[0]["tables"][0]
+    assert "paper-4" in table[0][-1]
+    assert table[1][0] == "carpet" and table[1][-1] == 4.0
+    assert table[2][0] == "stone" and table[2][-1] == "-"
+
+
 def test_committee_is_every_other_materials_als_basis(tmp_path):
     """tasks.adaptive.committee_bases on a real model store: every materials/<id>/als but the excluded one's,
     in material order; other bases and a store without materials give none."""
