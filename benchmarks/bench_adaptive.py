@@ -5,14 +5,17 @@ group (the default, :meth:`AdaptiveState.committee_gains`: ``--committee`` other
 rows and compared with the class basis on the predictor's texel subset; and, timed beside it,
 :meth:`AdaptiveState.gains`, every candidate's exact rank-``n_cam`` update) and updating the
 reconstruction (:meth:`AdaptiveState.add`: the rank-``n_cam`` update of the solve, the error model and the
-prediction on the predictor's texel subset). Solving for the coefficients of every texel
+prediction on the predictor's texel subset), with the loop's default fused measured rows (their error counted
+by :func:`~btfcore.acquisition.adaptive.fused_error`). The values matter to the prediction's cost in one
+place: :func:`~btfcore.acquisition.adaptive.expected_log_error` reads its table for entries whose
+uncertainty is above a tenth of their value, which on this random basis is every unmeasured entry (the
+worst case). Solving for the coefficients of every texel
 (:meth:`AdaptiveState.coefficients`, needed once at the stop) is timed beside it
 (``all_coefficients_cpu_s``). It runs with one BLAS thread (set before numpy loads, unless the
 environment sets it): with more, ``process_time`` counts the BLAS threads' spin-waiting. Scale:
 the thesis' dome, 198 LEDs x 11 cameras x 12 turntable positions = 26,136 light/view pairs, 2,376
 (turntable, LED) groups, 128 x 128 RGB texels, a k = 64 ALS basis (paper 4 §5). The basis is a random
-orthonormal one and the measurements its rows times positive coefficients (the cost does not depend on
-the values). Steps are timed in CPU seconds (``time.process_time``: the machine is shared) after
+orthonormal one and the measurements its rows times positive coefficients. Steps are timed in CPU seconds (``time.process_time``: the machine is shared) after
 ``--at`` groups measured, and compared with the time model's predicted seconds per shot of a sparse plan
 of the thesis' n_s = 400 pairs (:func:`btfcore.acquisition.time_model.predict_time`, default exposure).
 
@@ -77,7 +80,7 @@ def main(argv: list[str] | None = None) -> dict:
 
     ats = [int(a) for a in args.at.split(",")]
     committee = [(np.linalg.qr(rng.normal(size=(g.n_lv, args.k)))[0], sigma) for _ in range(args.committee)]
-    st = AdaptiveState(U, sigma, g, noise, n_tx=n_tx, committee=committee)
+    st = AdaptiveState(U, sigma, g, noise, n_tx=n_tx, committee=committee, measured_rows="fused")   # the loop's default
     first = start_groups(U, sigma, g, min(ats[0], 12))
     for grp in first:
         st.add(grp, *measure(grp))

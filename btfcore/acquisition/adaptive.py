@@ -38,8 +38,11 @@ brightness: :data:`WEIGHTINGS`), has the error covariance (the sandwich of that 
 
 with :math:`\\beta_m` the RMS reconstructed luminance of row ``m`` (and a texel's own brightness as a
 factor), and the bias :math:`-\\lambda^2 M^{-1}\\hat d` of the regulariser. The predicted squared log
-error of an unmeasured row is :math:`s^2 + x_i \\mathrm{Cov}\\, x_i^T / \\hat Y_{ij}^2` (first order:
-:math:`\\delta \\log Y = \\delta Y / Y`); a measured row contributes its observed log residual.
+error of an unmeasured entry is :math:`s^2` plus the expected squared log error of :math:`\\hat Y_{ij} + \\delta`,
+:math:`\\delta \\sim \\mathcal N(0, x_i \\mathrm{Cov}\\, x_i^T)` (:func:`expected_log_error`: the first order
+:math:`\\delta \\log Y = \\delta Y / Y` where the deviation is small, Gauss-Hermite quadrature where it is not);
+a measured row contributes :math:`s^2 (1 - h_{mm})`, or, fused with its measurement, the fused entries'
+error estimated from the row's own residuals (:func:`fused_error`).
 
 Pure numerics: the measurements come from a callback (the simulator or a real dome, in ``tasks``); the
 truth is never seen here except through an optional callback that scores a reconstruction.
@@ -47,6 +50,7 @@ truth is never seen here except through an optional callback that scores a recon
 
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -60,7 +64,8 @@ from btfcore.acquisition.strategies import Geometry, row_groups
 from btfcore.model.colour import LOG_YUV_EPS, REC709_LUMA
 
 __all__ = ["MEASURED_ROWS", "PREDICTORS", "SELECTIONS", "WEIGHTINGS", "AdaptiveResult", "AdaptiveState", "Step",
-           "group_pairs", "group_rows", "fuse_measured", "log_y_error", "run_adaptive", "shot_costs", "start_groups"]
+           "expected_log_error", "fused_error", "group_pairs", "group_rows", "fuse_measured", "log_y_error",
+           "run_adaptive", "shot_costs", "start_groups"]
 
 #: The error predictors every step records; the first stops the loop (docs/adaptive-capture.md).
 PREDICTORS: tuple[str, ...] = ("posterior", "cv")
@@ -82,9 +87,14 @@ NOISE_MASK = 0.1
 #: at most PREDICT_ENTRIES / n_lv (the thesis' 26,136 rows: 88 texels, 2.3 million entries).
 PREDICT_TEXELS = 512
 PREDICT_ENTRIES = 2_300_000
+#: Unmeasured entries of that subset whose expected log error the predictor evaluates (every stride-th texel).
+PREDICT_NONLINEAR_ENTRIES = 1_200_000
 #: Entries (rows x texels of that subset, every stride-th texel) each committee member is compared on: the
 #: committee's vote is a per-row mean, for which fewer texels suffice (issue 20's per-step overhead bar).
 COMMITTEE_ENTRIES = 400_000
+#: Up to this relative standard deviation of an entry the first order (var / Y^2) stands for the tabulated
+#: expectation of :func:`expected_log_error`.
+FIRST_ORDER_MAX_SD = 0.1
 
 
 def log_y_error(recon_y: np.ndarray, truth_y: np.ndarray, eps: float = LOG_YUV_EPS) -> float:
@@ -336,8 +346,9 @@ class AdaptiveState:
         Returns
         -------
         pred : dict
-            ``posterior``: measured rows by their log residual, unmeasured rows by
-            :math:`s^2 + x_i \\mathrm{Cov}\\, x_i^T / \\hat Y_{ij}^2` plus the regulariser's bias;
+            ``posterior``: measured rows by :math:`s^2 (1 - h_{mm})` or, fused, by :func:`fused_error`;
+            unmeasured entries by :math:`s^2` plus :func:`expected_log_error` of the variance
+            :math:`x_i \\mathrm{Cov}\\, x_i^T t_j^2` and the regulariser's bias squared;
             ``cv``: unmeasured rows by the mean leave-one-group-out log error of the measured groups;
             ``s``: the estimated relative model residual :math:`s`.
         """
@@ -346,15 +357,22 @@ class AdaptiveState:
         A = self.X[self.rows] * np.sqrt(self.w)[:, None]
         Cov = Minv @ (A.T * (self.w * N[self.rows])) @ A @ Minv       # sandwich: M^-1 A^T W N W A M^-1
         q = np.sum((self.X @ Cov) * self.X, axis=1)                   # (n_lv,) x_i Cov x_i^T
-        bias = self.X @ (-self.lam ** 2 * Minv @ m["Dy"])             # (n_lv, n_sub) x_i (-lam^2 M^-1 D)
-        tex, inv2 = m["tex"], m["inv2"]
         unmeasured = np.ones(self.n_lv, dtype=bool)
         unmeasured[self.rows] = False
-        var_u = s2 + (q[unmeasured, None] * tex[None, :] + bias[unmeasured] ** 2) * inv2[unmeasured]
-        var_u = np.minimum(var_u, np.log(1 / LOG_YUV_EPS) ** 2)       # a log error is at most the log range
+        # the unmeasured entries on every stride-th texel of the subset (at most PREDICT_NONLINEAR_ENTRIES)
+        cols = slice(None, None, max(1, -(-int(unmeasured.sum()) * len(self.sub) // PREDICT_NONLINEAR_ENTRIES)))
+        bias = self.X[unmeasured] @ (-self.lam ** 2 * Minv @ m["Dy"][:, cols])   # x_i (-lam^2 M^-1 D)
+        var_c = (q[unmeasured, None] * m["tex"][None, cols] + bias ** 2).astype(np.float32)   # of Y
+        var_u = np.minimum(np.float32(s2) + expected_log_error(Yhat[:, cols][unmeasured], var_c),
+                           np.float32(np.log(1 / LOG_YUV_EPS) ** 2))   # a log error is at most the log range
+        unmeasured_error = float(np.sum(var_u, dtype=np.float64)) * len(self.sub) / max(var_u.shape[1], 1)
         ss = float(np.sum(np.log(np.maximum(Yhat, LOG_YUV_EPS)) ** 2))
-        measured = float(np.sum(s2 * (1.0 - m["H"]))) * len(self.sub)   # measured rows: s^2 (1 - h_mm)
-        post = np.sqrt((measured + float(np.sum(var_u))) / ss)
+        if self.measured_rows == "fused" and self.groups:             # the fused entries, from their residuals
+            measured = float(np.sum(fused_error(Yhat[self.rows], self.y @ REC709_LUMA, self.gain, self.noise,
+                                                max(float(m["s2"]), FUSE_S2_FLOOR))))
+        else:
+            measured = float(np.sum(s2 * (1.0 - m["H"]))) * len(self.sub)   # measured rows: s^2 (1 - h_mm)
+        post = np.sqrt((measured + unmeasured_error) / ss)
         cv = np.sqrt((measured + self._cv_row_mse(m) * unmeasured.sum() * len(self.sub)) / ss)
         return {"posterior": float(post), "cv": float(cv), "s": float(np.sqrt(s2))}
 
@@ -498,6 +516,120 @@ def fuse_measured(model: np.ndarray, measured: np.ndarray, gain: np.ndarray, noi
     var_meas = np.where(y > eps, v / np.maximum(y, eps) ** 2, np.inf)
     weight = (var_model / (var_model + var_meas))[..., None]      # the measurement's weight
     return np.exp((1 - weight) * np.log(np.maximum(model, eps)) + weight * np.log(np.maximum(measured, eps)))
+
+
+@functools.lru_cache(maxsize=1)
+def _log_error_table() -> tuple[np.ndarray, tuple[float, float, float], tuple[float, float, float], int]:
+    """:math:`f(a, b) = E_z[(\\log\\max(a + z, b) - \\log\\max(a, b))^2]`, :math:`z \\sim \\mathcal N(0, 1)`, on a
+    grid of :math:`a \\in [-10, 10]` (401 points) and :math:`\\log b \\in [\\log 10^{-8}, \\log 10]` (181 points),
+    by the trapezoid rule over :math:`z \\in [-8.5, 8.5]` (1,601 points); built once per process (about 0.5 s).
+    Returns the flattened float32 table, ``(first, last, 1 / step)`` of each grid, and the row length."""
+    a = np.linspace(-10.0, 10.0, 401)
+    log_b = np.linspace(np.log(1e-8), np.log(10.0), 181)
+    z = np.linspace(-8.5, 8.5, 1601)
+    w = np.exp(-0.5 * z ** 2) / np.sqrt(2 * np.pi) * (z[1] - z[0])
+    w[[0, -1]] *= 0.5
+    table = np.empty((len(a), len(log_b)))
+    for j, lb in enumerate(log_b):
+        b = np.exp(lb)
+        table[:, j] = ((np.log(np.maximum(a[:, None] + z[None, :], b)) - np.log(np.maximum(a, b))[:, None]) ** 2) @ w
+    grid = [(float(g[0]), float(g[-1]) - 1e-3, float(1 / (g[1] - g[0]))) for g in (a, log_b)]
+    return table.astype(np.float32).ravel(), grid[0], grid[1], len(log_b)
+
+
+def expected_log_error(Yhat: np.ndarray, var: np.ndarray, eps: float = LOG_YUV_EPS) -> np.ndarray:
+    """Expected squared log error :math:`E[(\\log\\max(\\hat Y + \\delta, \\epsilon) - \\log\\max(\\hat Y,
+    \\epsilon))^2]`, :math:`\\delta \\sim \\mathcal N(0, var)`, elementwise.
+
+    Where the standard deviation is at most :data:`FIRST_ORDER_MAX_SD` of :math:`\\max(\\hat Y, \\epsilon)` the first
+    order :math:`var / \\hat Y^2` (:math:`\\delta \\log Y = \\delta Y / Y`). Elsewhere (dark entries, whose
+    uncertainty is comparable to their value, and entries at or below :math:`\\epsilon`), where the first order
+    grows without bound while the clamp at :math:`\\epsilon` bounds the error, the expectation is read from a
+    table of :math:`f(\\hat Y / sd, \\epsilon / sd)` (the error is invariant to scaling all three) at the nearest
+    grid point, in float32 (:func:`_log_error_table`; within 3 % of Monte Carlo in
+    ``tests/btfcore/test_adaptive.py``).
+
+    Parameters
+    ----------
+    Yhat, var : ndarray (broadcast together)
+        Estimated values and the variances of their errors.
+
+    Returns
+    -------
+    err : ndarray (float32)
+    """
+    Y = np.asarray(Yhat, dtype=np.float32)
+    v = np.maximum(np.broadcast_to(np.asarray(var, dtype=np.float32), Y.shape), np.float32(1e-37))
+    floor = np.maximum(Y, np.float32(eps))
+    wide = v > (np.float32(FIRST_ORDER_MAX_SD) * floor) ** 2
+    first = v / np.maximum(np.abs(Y), np.float32(eps)) ** 2          # first order
+    if not wide.any():
+        return first
+    # every entry through the table (no gathers of the wide ones: most are wide where it matters), at the nearest
+    # grid point (the sums the predictor takes are within 1e-4 of bilinear interpolation's, at a fifth of the time)
+    table, (a0, a1, a_scale), (b0, b1, b_scale), n_b = _log_error_table()
+    f32 = np.float32
+    a = np.minimum(np.maximum(Y / np.sqrt(v), f32(a0)), f32(a1))     # Yhat / sd
+    a -= f32(a0)
+    a *= f32(a_scale)
+    a += f32(0.5)
+    b = np.log(v)
+    b *= f32(-0.5)
+    b += f32(np.log(eps) - b0)                                        # log(eps / sd), from the grid's start
+    b = np.minimum(np.maximum(b, f32(0)), f32(b1 - b0))
+    b *= f32(b_scale)
+    b += f32(0.5)
+    return np.where(wide, table.take(a.astype(np.int32) * n_b + b.astype(np.int32)), first)
+
+
+def fused_error(model_y: np.ndarray, measured_y: np.ndarray, gain: np.ndarray, noise: SensorNoise, s2: float,
+                eps: float = LOG_YUV_EPS) -> np.ndarray:
+    """Expected squared log error of measured entries fused by :func:`fuse_measured`, from the rows' residuals.
+
+    An entry measured above one read-noise standard deviation has the fit's log variance
+    :math:`s_i^2 \\max(1, \\beta_i / \\hat Y_{ij})^2` (the fusion's shape), :math:`s_i^2` the row's own:
+    :math:`\\sum_j (e_{ij}^2 - v_{ij}/y_{ij}^2) / \\sum_j \\max(1, \\beta_i / \\hat Y_{ij})^2` over those
+    entries (:math:`e` the log residual; floored at 0 after pooling over the row, so that a fit without
+    error is not given the positive bias of per-entry floors). With the fusion's weight :math:`w` (set by
+    ``s2`` as in :func:`fuse_measured`) its error is :math:`(1 - w)^2 \\sigma_{fit}^2 + w^2 v/y^2`.
+    An entry measured at or below one read-noise standard deviation is taken as a cast shadow, its truth
+    at or below :math:`\\epsilon` (at an ideal exposure a lit entry that dark is below the metric's floor
+    too): its error is the fused value's log distance to :math:`\\epsilon`, observed. A material with dim
+    lit entries between :math:`\\epsilon` and that noise floor is over-predicted there. Each at most the
+    log range squared.
+
+    Parameters
+    ----------
+    model_y, measured_y : (n_rows, n_tx) ndarray
+        The basis' fit and the measurement of the rows' luminance.
+    gain : (n_rows,) ndarray
+        Electrons per unit radiance of each row's image.
+    noise : SensorNoise
+    s2 : float
+        The relative model residual the fusion weighs with.
+
+    Returns
+    -------
+    err : (n_rows, n_tx) ndarray
+    """
+    cap = np.log(1 / eps) ** 2
+    Ym = np.asarray(model_y, dtype=np.float64)
+    y = np.asarray(measured_y, dtype=np.float64)
+    g = np.asarray(gain, dtype=np.float64)[:, None]
+    lit = y * g > noise.read_noise_e                                 # above one read-noise standard deviation
+    e2 = np.minimum((np.log(np.maximum(y, eps)) - np.log(np.maximum(Ym, eps))) ** 2, cap)
+    var_meas = np.where(lit, np.minimum((y / g + noise.read_noise_e ** 2 / g ** 2) / np.maximum(y, eps) ** 2, cap),
+                        0.0)
+    beta = np.sqrt(np.mean(Ym ** 2, axis=1, keepdims=True))
+    shape = np.maximum(1.0, beta / np.maximum(Ym, eps)) ** 2
+    s2_row = np.maximum(np.sum(np.where(lit, e2 - var_meas, 0.0), axis=1, keepdims=True)
+                        / np.maximum(np.sum(np.where(lit, shape, 0.0), axis=1, keepdims=True), 1e-300), 0.0)
+    var_fit = np.minimum(s2_row * shape, cap)
+    var_model = s2 * shape                                            # fuse_measured's weight of the measurement
+    w = np.where(lit, var_model / (var_model + np.where(lit, var_meas, 1.0)), 0.0)
+    grey = np.repeat(Ym[..., None], 3, axis=-1), np.repeat(y[..., None], 3, axis=-1)   # luminance as grey RGB
+    shadow = (np.log(fuse_measured(*grey, gain, noise, s2)[..., 0]) - np.log(eps)) ** 2
+    return np.minimum(np.where(lit, (1 - w) ** 2 * var_fit + w ** 2 * var_meas, shadow), cap)
 
 
 def shot_costs(groups: Sequence[int], geometry: Geometry, shot_s: float, move_s: float) -> np.ndarray:
