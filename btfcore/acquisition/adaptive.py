@@ -40,7 +40,7 @@ with :math:`\\beta_m` the RMS reconstructed luminance of row ``m`` (and a texel'
 factor), and the bias :math:`-\\lambda^2 M^{-1}\\hat d` of the regulariser. The predicted squared log
 error of an unmeasured entry is :math:`s^2` plus the expected squared log error of :math:`\\hat Y_{ij} + \\delta`,
 :math:`\\delta \\sim \\mathcal N(0, x_i \\mathrm{Cov}\\, x_i^T)` (:func:`expected_log_error`: the first order
-:math:`\\delta \\log Y = \\delta Y / Y` where the deviation is small, Gauss-Hermite quadrature where it is not);
+:math:`\\delta \\log Y = \\delta Y / Y` where the deviation is small, a table where it is not);
 a measured row contributes :math:`s^2 (1 - h_{mm})`, or, fused with its measurement, the fused entries'
 error estimated from the row's own residuals (:func:`fused_error`).
 
