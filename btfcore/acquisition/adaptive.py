@@ -508,14 +508,21 @@ def fuse_measured(model: np.ndarray, measured: np.ndarray, gain: np.ndarray, noi
     fused : (n_rows, n_tx, 3) ndarray
     """
     eps = LOG_YUV_EPS
-    Ym, y = model @ REC709_LUMA, measured @ REC709_LUMA
-    beta = np.sqrt(np.mean(Ym ** 2, axis=1, keepdims=True))
-    var_model = s2 * np.maximum(1.0, beta / np.maximum(Ym, eps)) ** 2
-    g = np.asarray(gain, dtype=np.float64)[:, None]
-    v = np.maximum(y, 0) / g + noise.read_noise_e ** 2 / g ** 2
-    var_meas = np.where(y > eps, v / np.maximum(y, eps) ** 2, np.inf)
-    weight = (var_model / (var_model + var_meas))[..., None]      # the measurement's weight
+    weight = _fusion(model @ REC709_LUMA, measured @ REC709_LUMA, gain, noise, s2)[2][..., None]
     return np.exp((1 - weight) * np.log(np.maximum(model, eps)) + weight * np.log(np.maximum(measured, eps)))
+
+
+def _fusion(model_y: np.ndarray, measured_y: np.ndarray, gain: np.ndarray, noise: SensorNoise, s2: float,
+            eps: float = LOG_YUV_EPS) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`fuse_measured`'s pieces on luminance ``(n_rows, n_tx)``: the fit's relative shape
+    :math:`\\max(1, \\beta_i / \\hat Y_{ij})^2`, the measurement's log variance :math:`v_{ij} / y_{ij}^2`
+    (infinite at or below :math:`\\epsilon`) and the measurement's weight."""
+    beta = np.sqrt(np.mean(model_y ** 2, axis=1, keepdims=True))
+    shape = np.maximum(1.0, beta / np.maximum(model_y, eps)) ** 2
+    g = np.asarray(gain, dtype=np.float64)[:, None]
+    v = np.maximum(measured_y, 0) / g + noise.read_noise_e ** 2 / g ** 2
+    var_meas = np.where(measured_y > eps, v / np.maximum(measured_y, eps) ** 2, np.inf)
+    return shape, var_meas, s2 * shape / (s2 * shape + var_meas)
 
 
 @functools.lru_cache(maxsize=1)
@@ -615,20 +622,16 @@ def fused_error(model_y: np.ndarray, measured_y: np.ndarray, gain: np.ndarray, n
     cap = np.log(1 / eps) ** 2
     Ym = np.asarray(model_y, dtype=np.float64)
     y = np.asarray(measured_y, dtype=np.float64)
-    g = np.asarray(gain, dtype=np.float64)[:, None]
-    lit = y * g > noise.read_noise_e                                 # above one read-noise standard deviation
-    e2 = np.minimum((np.log(np.maximum(y, eps)) - np.log(np.maximum(Ym, eps))) ** 2, cap)
-    var_meas = np.where(lit, np.minimum((y / g + noise.read_noise_e ** 2 / g ** 2) / np.maximum(y, eps) ** 2, cap),
-                        0.0)
-    beta = np.sqrt(np.mean(Ym ** 2, axis=1, keepdims=True))
-    shape = np.maximum(1.0, beta / np.maximum(Ym, eps)) ** 2
+    # above one read-noise sd and above eps (the fusion gives a value at or below eps no weight)
+    lit = (y * np.asarray(gain, dtype=np.float64)[:, None] > noise.read_noise_e) & (y > eps)
+    log_fit, log_meas = np.log(np.maximum(Ym, eps)), np.log(np.maximum(y, eps))
+    shape, var_meas, w = _fusion(Ym, y, gain, noise, s2, eps)
+    var_meas = np.where(lit, var_meas, 0.0)
+    e2 = np.minimum((log_meas - log_fit) ** 2, cap)
     s2_row = np.maximum(np.sum(np.where(lit, e2 - var_meas, 0.0), axis=1, keepdims=True)
                         / np.maximum(np.sum(np.where(lit, shape, 0.0), axis=1, keepdims=True), 1e-300), 0.0)
     var_fit = np.minimum(s2_row * shape, cap)
-    var_model = s2 * shape                                            # fuse_measured's weight of the measurement
-    w = np.where(lit, var_model / (var_model + np.where(lit, var_meas, 1.0)), 0.0)
-    grey = np.repeat(Ym[..., None], 3, axis=-1), np.repeat(y[..., None], 3, axis=-1)   # luminance as grey RGB
-    shadow = (np.log(fuse_measured(*grey, gain, noise, s2)[..., 0]) - np.log(eps)) ** 2
+    shadow = ((1 - w) * log_fit + w * log_meas - np.log(eps)) ** 2    # the fused value's log distance to eps
     return np.minimum(np.where(lit, (1 - w) ** 2 * var_fit + w ** 2 * var_meas, shadow), cap)
 
 
