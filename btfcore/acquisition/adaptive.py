@@ -29,7 +29,8 @@ Model (per texel ``j``; ``x_i`` the row ``i`` of :math:`U\\Sigma`, coefficients 
 
 ``r`` is the part of the material the leave-one-out class basis cannot represent, taken as relative
 (the ALS basis is fitted to relative errors, paper 4 §4.2; and the metric is on log Y), ``v`` the sensor's
-photon and read noise at the exposure's gain (:func:`btfcore.acquisition.noise.noise_moments`). The
+photon and read noise at the exposure's gain (:func:`btfcore.acquisition.noise.noise_moments`), on luminance
+the channels' noise weighted by the squared luminance weights (:func:`luminance_noise`). The
 estimate :math:`\\hat d = M^{-1} A^T W y`, :math:`M = A^T W A + \\lambda^2 I`, :math:`A = S U \\Sigma`
 (paper 4 eq. 10; row weights :math:`W` either 1, or, by default, relative to each row's measured
 brightness: :data:`WEIGHTINGS`), has the error covariance (the sandwich of that estimator under the noise)
@@ -309,36 +310,48 @@ class AdaptiveState:
         H = np.sum((A @ Minv) * A, axis=1)                            # leverages (hat diagonal)
         eps = LOG_YUV_EPS
         e = np.log(np.maximum(ys, eps)) - np.log(np.maximum(Yhat[self.rows], eps))      # log residual
-        # sensor noise of the measured luminance at each image's gain: Y / g + sigma_r^2 / g^2
-        v = np.maximum(ys, 0) / self.gain[:, None] + self.noise.read_noise_e ** 2 / self.gain[:, None] ** 2
+        v = luminance_noise(self.y, self.gain, self.noise)           # sensor noise of the measured luminance
         # the model residual from the well-exposed entries only (relative sensor noise below NOISE_MASK):
         # in dark entries the log residual is the sensor's noise, which the reconstruction averages out
         rel_noise = v / np.maximum(ys, eps) ** 2
         good = rel_noise < NOISE_MASK ** 2
-        s2 = self._residual(e, rel_noise, good, H, slice(None))        # relative model residual
-        # the predictor's: from the rows of the first groups only, chosen before any data; later groups are
-        # chosen where the model is worst (or least certain), a biased sample of the residual
-        s2_pred = self._residual(e, rel_noise, good, H, slice(0, self.unbiased_groups * self.geometry.n_cam)) \
-            if self.unbiased_groups else s2
         beta2 = np.mean(Yhat ** 2, axis=1)                            # (n_lv,) row brightness^2
+        tex = np.mean(Yhat ** 2, axis=0) / max(float(np.mean(beta2)), 1e-300)      # (n_sub,) texel brightness^2
+        # the fit's relative error at the measured entries, the basis' misfit and the noise it follows together
+        # (what the fusion weighs the fit by)
+        s2 = self._residual(e, rel_noise, good, H, slice(None))
+        # the basis' misfit alone (the predictor's): the fit's variance at the measured entries from the noise
+        # of all measured rows (the sandwich's noise part) is in the residuals too. From the rows of the first
+        # groups only, chosen before any data; later groups are chosen where the model is worst (or least
+        # certain), a biased sample of the residual
+        B = A @ Minv
+        cov_noise = (B.T * (self.w * np.mean(v, axis=1))) @ B          # M^-1 A^T W V W A M^-1
+        q_noise = np.sum((self.X[self.rows] @ cov_noise) * self.X[self.rows], axis=1)       # x_m Cov_v x_m^T
+        noise = (1.0 - 2.0 * H)[:, None] * rel_noise + q_noise[:, None] * tex[None, :] / np.maximum(
+            np.abs(Yhat[self.rows]), eps) ** 2
+        s2_pred = self._residual(e, noise, good, H, slice(0, self.unbiased_groups * self.geometry.n_cam
+                                                          if self.unbiased_groups else len(self.rows)))
         # predicted noise of an unmeasured image at an ideal auto exposure (its brightest value at fill)
         g_all = exposure_gain(np.maximum(np.max(np.abs(Yhat), axis=1), eps), self.noise)
-        v_all = np.mean(np.maximum(Yhat, 0), axis=1) / g_all + self.noise.read_noise_e ** 2 / g_all ** 2
+        v_all = LUMA_NOISE_SHARE * (np.mean(np.maximum(Yhat, 0), axis=1) / g_all + self.noise.read_noise_e ** 2
+                                    / g_all ** 2)                     # of a grey row's luminance
         v_all[self.rows] = np.mean(v, axis=1)
         N = s2 * beta2 + v_all                                        # (n_lv,) per-row error variance
         w_all = self._weights(np.sqrt(beta2)) if self.beta_ref else np.ones(self.n_lv)
         w_all[self.rows] = self.w
         inv2 = 1.0 / np.maximum(np.abs(Yhat), eps) ** 2                  # (n_lv, n_sub) 1 / Yhat^2
-        tex = np.mean(Yhat ** 2, axis=0) / max(float(np.mean(beta2)), 1e-300)      # (n_sub,) texel brightness^2
         return {"Minv": Minv, "Dy": Dy, "Yhat": Yhat, "e": e, "H": H, "s2": s2, "s2_pred": s2_pred, "N": N,
                 "N_pred": N + (s2_pred - s2) * beta2, "beta2": beta2, "w": w_all, "inv2": inv2, "tex": tex}
 
     @staticmethod
-    def _residual(e: np.ndarray, rel_noise: np.ndarray, good: np.ndarray, H: np.ndarray, rows: slice) -> float:
-        """:math:`s^2`: the leverage-corrected mean squared log residual of the well-exposed entries of the
-        measured ``rows``, their relative sensor noise subtracted."""
+    def _residual(e: np.ndarray, noise: np.ndarray, good: np.ndarray, H: np.ndarray, rows: slice) -> float:
+        """:math:`s^2` from the well-exposed entries of the measured ``rows``, the expectation of their squared
+        log residual being :math:`(1 - h) s^2` plus ``noise``: either the sensor's :math:`v / y^2` (then
+        :math:`s^2` is the fit's whole error there), or the sensor's less twice the part the fit follows,
+        :math:`(1 - 2h) v / y^2`, plus the fit's variance from all rows' noise, :math:`x \\mathrm{Cov}_v x^T
+        t^2 / \\hat Y^2` (then :math:`s^2` is the basis' misfit alone)."""
         dof = max(float(np.sum((1.0 - H[rows])[:, None] * good[rows])), 1.0)
-        return max(float(np.sum((e[rows] ** 2 - rel_noise[rows]) * good[rows])) / dof, 0.0)
+        return max(float(np.sum((e[rows] ** 2 - noise[rows]) * good[rows])) / dof, 0.0)
 
     def predict(self, model: dict | None = None) -> dict[str, float]:
         """Predicted relative L2 error of log Y over all rows, without the truth.
@@ -477,6 +490,19 @@ class AdaptiveState:
         out = np.full(self.n_groups, -np.inf)
         out[cand] = gain
         return out
+
+
+#: Share of a grey channel's noise variance its luminance carries: :math:`\sum_c w_c^2` of the luminance
+#: weights, the channels' noise independent (one exposure of each channel, as the simulator's sensor).
+LUMA_NOISE_SHARE = float(np.sum(REC709_LUMA ** 2))
+
+
+def luminance_noise(measured: np.ndarray, gain: np.ndarray, noise: SensorNoise) -> np.ndarray:
+    """Noise variance of the luminance of measured linear RGB, ``(n_rows, n_tx)`` from ``(n_rows, n_tx, 3)``:
+    :math:`\\sum_c w_c^2 (\\max(y_c, 0) / g + \\sigma_r^2 / g^2)`, each channel's photon and read noise at the
+    image's gain ``(n_rows,)`` independent; about :data:`LUMA_NOISE_SHARE` of a grey channel's."""
+    g = np.asarray(gain, dtype=np.float64)[:, None]
+    return (np.maximum(measured, 0) @ REC709_LUMA ** 2) / g + LUMA_NOISE_SHARE * noise.read_noise_e ** 2 / g ** 2
 
 
 #: Floor of the relative model residual s^2 the fusion weighs the model with.

@@ -5,9 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from btfcore.acquisition.adaptive import (AdaptiveState, expected_log_error, fuse_measured, fused_error, group_rows,
-                                         log_y_error, run_adaptive, shot_costs, start_groups)
-from btfcore.model.colour import LOG_YUV_EPS
+from btfcore.acquisition.adaptive import (LUMA_NOISE_SHARE, AdaptiveState, expected_log_error, fuse_measured,
+                                         fused_error, group_rows, log_y_error, luminance_noise, run_adaptive,
+                                         shot_costs, start_groups)
+from btfcore.model.colour import LOG_YUV_EPS, REC709_LUMA
 from btfcore.acquisition.noise import SensorNoise, exposure_gain, expose
 from btfcore.acquisition.strategies import Geometry
 
@@ -318,3 +319,58 @@ def test_fused_prediction_matches_monte_carlo():
             pred.append(st.predict()["posterior"])
             true.append(log_y_error(st.reconstruction()[..., 0], _truth_y(truth)))
         assert np.mean(pred) == pytest.approx(np.mean(true), rel=0.15), (n_groups, pred, true)
+
+
+def test_luminance_noise_is_the_simulated_sensors():
+    """The luminance's noise variance of coloured rows (each channel's photon and read noise drawn by the
+    simulator's sensor, independent) is :func:`luminance_noise` within 3 %, a grey channel's about
+    ``LUMA_NOISE_SHARE`` of it."""
+    rng = np.random.default_rng(3)
+    signal = rng.uniform(0.01, 1.0, (4, 64, 3)) * np.array([1.0, 0.6, 0.3])
+    gain = exposure_gain(signal.reshape(4, -1).max(axis=1), NOISE)
+    draws = np.stack([expose(signal, gain, NOISE, np.random.default_rng([5, i]), np.float64) for i in range(4000)])
+    realised = (draws @ REC709_LUMA).var(axis=0)
+    predicted = luminance_noise(signal, gain, NOISE)
+    assert np.sum(realised) == pytest.approx(np.sum(predicted), rel=0.03)
+    assert np.median(realised / predicted) == pytest.approx(1.0, abs=0.05)
+    grey = np.repeat(signal[..., :1], 3, axis=2)
+    one_channel = grey[..., 0] / gain[:, None] + NOISE.read_noise_e ** 2 / gain[:, None] ** 2
+    assert luminance_noise(grey, gain, NOISE) == pytest.approx(LUMA_NOISE_SHARE * one_channel, rel=1e-9)
+
+
+def _start_model(U, sigma, truth, seed, weighting, n_groups):
+    st = AdaptiveState(U, sigma, GEOMETRY, NOISE, n_tx=truth.shape[1], seed=seed, weighting=weighting)
+    measure = _measure(truth, seed)
+    for g in start_groups(U, sigma, GEOMETRY, n_groups):
+        st.add(int(g), *measure(int(g), st.rows_of(int(g))))
+    return st, st._model()
+
+
+def test_the_predictors_misfit_is_not_the_noise_the_fit_follows():
+    """A material in the basis' span whose rows span 3.5 decades of brightness, measured with noise and solved
+    unweighted: the fit's relative error at the dark measured rows is the noise of the bright rows it follows
+    (the fit's whole error ``s2``, over a third of the sensor's relative noise), while the predictor's misfit
+    ``s2_pred`` is under a twentieth of it."""
+    misfit, whole, sensor = [], [], []
+    for seed in range(6):
+        rng = np.random.default_rng(seed)
+        x = np.linspace(0, 1, GEOMETRY.n_lv)
+        shapes = np.stack([np.exp(-((x - c) / w) ** 2) for c, w in zip(rng.uniform(0, 1, 12),
+                                                                       rng.uniform(0.05, 0.4, 12))], axis=1)
+        bright = 10 ** rng.uniform(-3.0, 0.5, GEOMETRY.n_lv)[:, None]
+        Uf, sf, _ = np.linalg.svd(bright * (shapes @ rng.uniform(0.1, 1.0, (12, 200)) + 0.05), full_matrices=False)
+        truth = bright * (shapes @ rng.uniform(0.1, 1.0, (12, GEOMETRY.height * GEOMETRY.width)) + 0.05)
+        st, m = _start_model(Uf[:, :13], sf[:13], np.repeat(truth[..., None], 3, axis=2), seed, "none", 10)
+        misfit.append(m["s2_pred"])
+        whole.append(m["s2"])
+        sensor.append(np.mean(luminance_noise(st.y, st.gain, NOISE) / (st.y @ REC709_LUMA) ** 2))
+    assert np.mean(whole) > 0.3 * np.mean(sensor), (whole, sensor)
+    assert np.mean(misfit) < 0.05 * np.mean(sensor), (misfit, sensor)
+
+
+@pytest.mark.parametrize("weighting", ["none", "relative"])
+def test_the_predictors_misfit_is_the_materials_residual(weighting):
+    """With a relative residual of 10 % put into the material the predictor's misfit is its square within 30 %
+    over seeds."""
+    misfit = [_start_model(*_problem(seed, s=0.1), seed, weighting, 8)[1]["s2_pred"] for seed in range(6)]
+    assert np.mean(misfit) == pytest.approx(0.1 ** 2, rel=0.3), misfit
