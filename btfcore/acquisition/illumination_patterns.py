@@ -33,7 +33,14 @@ Model (every view ``v`` of ``n_views`` sees the same ``m`` patterns; rows of
   pattern with more LEDs on saturates sooner, its exposure shrinks, and its
   variance in radiance units
   :math:`d_{vp} = x/g + \\sigma_r^2/g^2`
-  (:func:`~btfcore.acquisition.noise.noise_moments`) grows;
+  (:func:`~btfcore.acquisition.noise.noise_moments`) grows. With one exposure per
+  view (``single_exposure``, the ``realistic`` dome's multiplexed capture) every
+  pattern of a view gets the gain metered on the view's median pattern
+  (:func:`btfcore.simulate.nonideal.metered_maximum`): a dimmer pattern gets
+  less light, and one brighter than ``1 / fill`` times the median saturates at
+  its brightest texels, which the objective charges as the squared radiance
+  clipped off its brightest texel (a penalty that keeps the design below
+  saturation, not a model of the clipped texels' error);
 * **model error**: the ABRDF is :math:`b = U c + e` with a part outside
   the basis (truncation, class mismatch), :math:`e_{vl} \\sim \\mathcal N(0,
   \\varepsilon^2 r_{vl}^2)` independent per light/view pair
@@ -91,6 +98,7 @@ from numpy.typing import DTypeLike
 
 from btfcore.acquisition.noise import SensorNoise, exposure_gain, noise_moments
 from btfcore.acquisition.reconstruct import SolveOperator, solve_operator
+from btfcore.simulate.nonideal import metered_maximum
 
 __all__ = ["MODEL_ERROR", "PEAK_FACTOR", "PRIOR_FLOOR", "PatternDesign", "PatternModel", "design_patterns",
            "expected_error", "pattern_operator", "random_patterns", "select_rows"]
@@ -135,6 +143,9 @@ class PatternModel:
         views and LEDs) reaches in it. An image is exposed at most that long and
         shorter where it would saturate (above ``noise.fill``). None: every image
         is exposed to ``noise.fill`` (ideal auto exposure, the evaluation's model).
+    single_exposure : bool
+        Every pattern of a view shares one exposure, metered on the view's median
+        pattern (module docstring); False: each image is exposed on its own.
     """
 
     U: np.ndarray
@@ -146,6 +157,7 @@ class PatternModel:
     prior_floor: float = PRIOR_FLOOR
     model_error: float = MODEL_ERROR
     shutter_fill: float | None = None
+    single_exposure: bool = False
 
     def __post_init__(self) -> None:
         U = np.asarray(self.U, dtype=np.float64)
@@ -204,14 +216,25 @@ class PatternModel:
         """:math:`E\\|b\\|^2 = \\operatorname{tr}(U P U^T)` per texel."""
         return float(np.einsum("kk,k->", self.gram, self.prior))
 
-    def variance(self, x: np.ndarray) -> np.ndarray:
-        """Noise variance (radiance units) of images of typical radiance ``x`` (any shape, > 0)."""
+    def meter(self, x: np.ndarray, axis: int) -> np.ndarray | None:
+        """The typical radiance each view's one exposure is metered on: the median of its patterns' ``x``
+        over ``axis`` (kept), or None where every image is exposed on its own (``single_exposure`` False)."""
+        return metered_maximum(x, axis=axis) if self.single_exposure and np.shape(x)[axis] else None
+
+    def variance(self, x: np.ndarray, meter: np.ndarray | None = None) -> np.ndarray:
+        """Noise variance (radiance units) of images of typical radiance ``x`` (any shape, > 0), each exposed
+        on its own, or, with ``meter`` (broadcast against ``x``, :meth:`meter`), all at the gain of ``meter``,
+        plus the squared radiance clipped off the brightest texel where that saturates."""
         x = np.asarray(x, dtype=np.float64)
-        g = exposure_gain(self.peak_factor * x.ravel(), self.noise)                     # exposed to its peak
+        ref = x if meter is None else np.broadcast_to(np.asarray(meter, dtype=np.float64), x.shape)
+        g = exposure_gain(self.peak_factor * ref.ravel(), self.noise)                   # exposed to its peak
         if self.shutter_fill is not None:                                               # ... or the chosen shutter
             g_t = self.shutter_fill * self.noise.full_well_e / (self.peak_factor * float(self.radiance.mean()))
             g = np.minimum(g, g_t)
-        return noise_moments(x.ravel(), g, self.noise)[1].reshape(x.shape)             # x/g + sigma_r^2/g^2
+        d = noise_moments(x.ravel(), g, self.noise)[1]                                  # x/g + sigma_r^2/g^2
+        if meter is not None:
+            d = d + np.maximum(self.peak_factor * x.ravel() - self.noise.full_well_e / g, 0.0) ** 2   # clipped
+        return d.reshape(x.shape)
 
 
 @dataclass(frozen=True)
@@ -278,7 +301,7 @@ def _rows(model: PatternModel, patterns: np.ndarray) -> tuple[np.ndarray, np.nda
     x = model.radiance @ p.T                                               # x_vp = sum_{l in p} r_vl
     omega = model.model_error ** 2 * np.matmul(p * (model.radiance ** 2)[:, None, :], p.T)   # eps^2 M R_v^2 M^T
     idx = np.arange(p.shape[0])
-    omega[:, idx, idx] += model.variance(x)                                # + D_v (photon + read noise)
+    omega[:, idx, idx] += model.variance(x, model.meter(x, axis=1))        # + D_v (photon + read noise)
     return A, omega
 
 
@@ -345,6 +368,7 @@ class _Others:
     E: np.ndarray     # (V, k, n)
     W: np.ndarray     # (V, m_o, n)
     K: np.ndarray     # (V, m_o, m_o)
+    meter: np.ndarray | None = None    # (1, V): the others' metered radiance (single exposure), held for p
 
 
 def _others(model: PatternModel, others: np.ndarray) -> _Others:
@@ -358,7 +382,8 @@ def _others(model: PatternModel, others: np.ndarray) -> _Others:
     W = model.model_error ** 2 * others.astype(np.float64)[None] * (model.radiance ** 2)[:, None, :]
     E = U_t - np.matmul(A.transpose(0, 2, 1), np.matmul(K, W))            # U_v^T - A_v^T K_v W_v
     F = np.diag(1.0 / model.prior) + np.tensordot(A, np.matmul(K, A), axes=([0, 1], [0, 1]))
-    return _Others(_inverse(F), E, W, K)
+    meter = model.meter(model.radiance @ others.T.astype(np.float64), axis=1)
+    return _Others(_inverse(F), E, W, K, None if meter is None else meter.T)
 
 
 def _score(model: PatternModel, o: _Others, G: np.ndarray, Ep: np.ndarray, Wp: np.ndarray, x: np.ndarray,
@@ -366,7 +391,7 @@ def _score(model: PatternModel, o: _Others, G: np.ndarray, Ep: np.ndarray, Wp: n
     """Gains of candidates given ``E p`` ``(n_c, V, k)``, ``W p`` ``(n_c, V, m_o)``, typical radiance ``x`` and
     :math:`\\sum_{l \\in p} r_{vl}^2` ``rr`` ``(n_c, V)``."""
     Wv = Wp.transpose(1, 0, 2)                                             # (V, n_c, m_o)
-    s = model.variance(x) + model.model_error ** 2 * rr - np.sum(np.matmul(Wv, o.K) * Wv, axis=2).T
+    s = model.variance(x, o.meter) + model.model_error ** 2 * rr - np.sum(np.matmul(Wv, o.K) * Wv, axis=2).T
     return _gains(o.Q, G, Ep, s)
 
 
@@ -488,7 +513,13 @@ def design_patterns(model: PatternModel, m: int, *, seed: int = 0, sweeps: int =
     for _ in range(int(sweeps)):                                           # coordinate descent on the bits
         for j in rng.permutation(m):
             o = _others(model, np.delete(patterns, j, axis=0))
-            patterns[j] = _improve(model, o, G, patterns[j], max_flips, tol)
+            new = _improve(model, o, G, patterns[j], max_flips, tol)
+            if model.single_exposure:                  # scored with the others' meter held: keep it if J falls
+                trial = patterns.copy()
+                trial[j] = new
+                if _objective(model, trial) > _objective(model, patterns):
+                    continue
+            patterns[j] = new
         history.append(_objective(model, patterns))
     return _design(model, patterns, "greedy", history[:-1])
 

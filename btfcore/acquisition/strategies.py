@@ -148,9 +148,9 @@ class _Design:
 
     def __init__(self, bases: StrategyBases, geometry: Geometry, light_dir: np.ndarray, view_dir: np.ndarray,
                  variance: np.ndarray, patterns: np.ndarray, seed: int, abrdf_k_fraction: float,
-                 sampling_steps: int, noise: SensorNoise | None = None) -> None:
+                 sampling_steps: int, noise: SensorNoise | None = None, single_exposure: bool = False) -> None:
         self.bases, self.geometry, self.variance, self.patterns = bases, geometry, variance, patterns
-        self.noise = noise or SensorNoise()
+        self.noise, self.single_exposure = noise or SensorNoise(), single_exposure
         self.light_dir, self.view_dir = light_dir, view_dir
         self.seed, self.abrdf_k_fraction, self.sampling_steps = seed, abrdf_k_fraction, sampling_steps
         self.U = {c: b.U for c, b in bases.log_yuv.items()}
@@ -219,7 +219,7 @@ class _Design:
     @cached_property
     def pattern_model(self) -> PatternModel:
         als = self.bases.als
-        return PatternModel(als.U, als.sigma, self.geometry.n_leds, self.noise)
+        return PatternModel(als.U, als.sigma, self.geometry.n_leds, self.noise, single_exposure=self.single_exposure)
 
     @cached_property
     def n_patterns(self) -> int:
@@ -421,7 +421,7 @@ def floor_kinds() -> dict[str, str]:
 
 def build_strategies(bases: StrategyBases, geometry: Geometry, light_dir: np.ndarray, view_dir: np.ndarray,
                      variance: np.ndarray, patterns: np.ndarray, seed: int, *, abrdf_k_fraction: float = 0.75,
-                     sampling_steps: int = 1500, noise: SensorNoise | None = None
+                     sampling_steps: int = 1500, noise: SensorNoise | None = None, single_exposure: bool = False
                      ) -> tuple[list[Strategy], dict[str, Any]]:
     """Samplings and solve operators of every strategy of :data:`REGISTRY` for one held-out material.
 
@@ -446,6 +446,9 @@ def build_strategies(bases: StrategyBases, geometry: Geometry, light_dir: np.nda
         Steps of every random-swap sampler.
     noise : SensorNoise, optional
         The sensor the basis-aware patterns are designed for (default :class:`SensorNoise` ()).
+    single_exposure : bool
+        The dome exposes every pattern of a view with one gain metered on the view's median pattern
+        (:class:`~btfcore.acquisition.illumination_patterns.PatternModel`); the patterns are designed for it.
 
     Returns
     -------
@@ -454,7 +457,7 @@ def build_strategies(bases: StrategyBases, geometry: Geometry, light_dir: np.nda
         selected (turntable, LED / pattern) pairs of the sparse strategies.
     """
     design = _Design(bases, geometry, light_dir, view_dir, variance, patterns, seed, abrdf_k_fraction,
-                     sampling_steps, noise)
+                     sampling_steps, noise, single_exposure)
     strategies = [Strategy(spec.name, spec.space, spec.source, *spec.build(design, spec.arg), floor=spec.floor,
                            patterns=design.pattern_design(spec.arg).patterns if spec.source == "patterns" else None)
                   for spec in REGISTRY]

@@ -248,7 +248,8 @@ def _operators(model_path: str, materials: list[Material], material_id: str, set
     return build_strategies(bases, geometry, np.asarray(group["light_dir"][...]), np.asarray(group["view_dir"][...]),
                             variance, patterns, config.seed + material_index(material_id) % 100000,
                             abrdf_k_fraction=config.abrdf_k_fraction, sampling_steps=config.sampling_steps,
-                            noise=SensorNoise(float(sensor.full_well_e), float(sensor.read_noise_e), config.fill))
+                            noise=SensorNoise(float(sensor.full_well_e), float(sensor.read_noise_e), config.fill),
+                            single_exposure=config.non_ideal.multiplex_single_exposure)
 
 
 def band_pattern_maxima(path: str, r0: int, r1: int, ops: tuple[list[Strategy], dict[str, Any]]
