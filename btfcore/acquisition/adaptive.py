@@ -307,7 +307,8 @@ class AdaptiveState:
         Yhat = self.X @ Dy                                            # (n_lv, n_sub) reconstructed Y
         A = self.X[self.rows] * np.sqrt(self.w)[:, None]              # weighted rows
         ys = self.y @ REC709_LUMA                        # (n_meas, n_sub) measured Y
-        H = np.sum((A @ Minv) * A, axis=1)                            # leverages (hat diagonal)
+        B = A @ Minv
+        H = np.sum(B * A, axis=1)                                     # leverages (hat diagonal)
         eps = LOG_YUV_EPS
         e = np.log(np.maximum(ys, eps)) - np.log(np.maximum(Yhat[self.rows], eps))      # log residual
         v = luminance_noise(self.y, self.gain, self.noise)           # sensor noise of the measured luminance
@@ -324,7 +325,6 @@ class AdaptiveState:
         # of all measured rows (the sandwich's noise part) is in the residuals too. From the rows of the first
         # groups only, chosen before any data; later groups are chosen where the model is worst (or least
         # certain), a biased sample of the residual
-        B = A @ Minv
         cov_noise = (B.T * (self.w * np.mean(v, axis=1))) @ B          # M^-1 A^T W V W A M^-1
         q_noise = np.sum((self.X[self.rows] @ cov_noise) * self.X[self.rows], axis=1)       # x_m Cov_v x_m^T
         noise = (1.0 - 2.0 * H)[:, None] * rel_noise + q_noise[:, None] * tex[None, :] / np.maximum(
