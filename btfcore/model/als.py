@@ -166,6 +166,7 @@ class _NumpyOps:
     """Array operations of the numpy (reference) backend."""
 
     name, device, xp = "numpy", "cpu", np
+    lower_only = False                      # solve_spd's LU solve reads the whole normal matrix
 
     def __init__(self, dtype: np.dtype) -> None:
         self.dtype = dtype
@@ -220,6 +221,8 @@ class _TorchOps:
 
     def addmm_(self, C: Any, A: Any, B: Any) -> None:
         C.addmm_(A, B)
+
+    lower_only = True                       # cholesky_ex (LAPACK potrf, uplo L) reads the lower triangle only
 
     def solve_spd(self, G: Any, R: Any) -> Any:
         torch = self.torch
@@ -306,8 +309,9 @@ def _solve_packed(ops: _NumpyOps | _TorchOps, Gp: Any, R: Any, iu: Any, ju: Any,
     for s in range(0, n, step):
         m = min(step, n - s)
         G = ops.zeros((m, c, c))
-        G[:, iu, ju] = Gp[s:s + m]
-        G[:, ju, iu] = Gp[s:s + m]
+        G[:, ju, iu] = Gp[s:s + m]                                 # the lower triangle (iu <= ju)
+        if not ops.lower_only:
+            G[:, iu, ju] = Gp[s:s + m]
         out[s:s + m] = ops.solve_spd(G, R[s:s + m])
     return out
 
