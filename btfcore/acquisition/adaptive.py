@@ -59,7 +59,7 @@ from typing import Any
 
 import numpy as np
 
-from btfcore.acquisition.noise import SensorNoise, exposure_gain
+from btfcore.acquisition.noise import SensorNoise, exposure_gain, noise_moments
 from btfcore.acquisition.reconstruct import LAMBDA_ALS
 from btfcore.acquisition.strategies import Geometry, row_groups
 from btfcore.model.colour import LOG_YUV_EPS, REC709_LUMA
@@ -325,23 +325,27 @@ class AdaptiveState:
         # of all measured rows (the sandwich's noise part) is in the residuals too. From the rows of the first
         # groups only, chosen before any data; later groups are chosen where the model is worst (or least
         # certain), a biased sample of the residual
-        cov_noise = (B.T * (self.w * np.mean(v, axis=1))) @ B          # M^-1 A^T W V W A M^-1
+        cov_noise = self._sandwich(B, np.mean(v, axis=1))
         q_noise = np.sum((self.X[self.rows] @ cov_noise) * self.X[self.rows], axis=1)       # x_m Cov_v x_m^T
-        noise = (1.0 - 2.0 * H)[:, None] * rel_noise + q_noise[:, None] * tex[None, :] / np.maximum(
+        expected_noise = (1.0 - 2.0 * H)[:, None] * rel_noise + q_noise[:, None] * tex[None, :] / np.maximum(
             np.abs(Yhat[self.rows]), eps) ** 2
-        s2_pred = self._residual(e, noise, good, H, slice(0, self.unbiased_groups * self.geometry.n_cam
-                                                          if self.unbiased_groups else len(self.rows)))
+        s2_pred = self._residual(e, expected_noise, good, H, slice(0, self.unbiased_groups * self.geometry.n_cam
+                                                                   if self.unbiased_groups else len(self.rows)))
         # predicted noise of an unmeasured image at an ideal auto exposure (its brightest value at fill)
         g_all = exposure_gain(np.maximum(np.max(np.abs(Yhat), axis=1), eps), self.noise)
-        v_all = LUMA_NOISE_SHARE * (np.mean(np.maximum(Yhat, 0), axis=1) / g_all + self.noise.read_noise_e ** 2
-                                    / g_all ** 2)                     # of a grey row's luminance
+        v_all = LUMA_NOISE_SHARE * noise_moments(np.mean(Yhat, axis=1), g_all, self.noise)[1]   # a grey row's Y
         v_all[self.rows] = np.mean(v, axis=1)
         N = s2 * beta2 + v_all                                        # (n_lv,) per-row error variance
         w_all = self._weights(np.sqrt(beta2)) if self.beta_ref else np.ones(self.n_lv)
         w_all[self.rows] = self.w
         inv2 = 1.0 / np.maximum(np.abs(Yhat), eps) ** 2                  # (n_lv, n_sub) 1 / Yhat^2
-        return {"Minv": Minv, "Dy": Dy, "Yhat": Yhat, "e": e, "H": H, "s2": s2, "s2_pred": s2_pred, "N": N,
+        return {"Minv": Minv, "B": B, "Dy": Dy, "Yhat": Yhat, "e": e, "H": H, "s2": s2, "s2_pred": s2_pred, "N": N,
                 "N_pred": N + (s2_pred - s2) * beta2, "beta2": beta2, "w": w_all, "inv2": inv2, "tex": tex}
+
+    def _sandwich(self, B: np.ndarray, var: np.ndarray) -> np.ndarray:
+        """:math:`M^{-1} A^T W V W A M^{-1}` ``(k, k)`` from ``B`` :math:`= A M^{-1}` (weighted rows) and the
+        measured rows' error variances ``var`` ``(n_meas,)``: the coefficients' covariance under that error."""
+        return (B.T * (self.w * var)) @ B
 
     @staticmethod
     def _residual(e: np.ndarray, noise: np.ndarray, good: np.ndarray, H: np.ndarray, rows: slice) -> float:
@@ -367,8 +371,7 @@ class AdaptiveState:
         """
         m = model or self._model()
         Minv, Yhat, N, s2 = m["Minv"], m["Yhat"], m["N_pred"], m["s2_pred"]
-        A = self.X[self.rows] * np.sqrt(self.w)[:, None]
-        Cov = Minv @ (A.T * (self.w * N[self.rows])) @ A @ Minv       # sandwich: M^-1 A^T W N W A M^-1
+        Cov = self._sandwich(m["B"], N[self.rows])
         q = np.sum((self.X @ Cov) * self.X, axis=1)                   # (n_lv,) x_i Cov x_i^T
         unmeasured = np.ones(self.n_lv, dtype=bool)
         unmeasured[self.rows] = False
@@ -501,8 +504,7 @@ def luminance_noise(measured: np.ndarray, gain: np.ndarray, noise: SensorNoise) 
     """Noise variance of the luminance of measured linear RGB, ``(n_rows, n_tx)`` from ``(n_rows, n_tx, 3)``:
     :math:`\\sum_c w_c^2 (\\max(y_c, 0) / g + \\sigma_r^2 / g^2)`, each channel's photon and read noise at the
     image's gain ``(n_rows,)`` independent; about :data:`LUMA_NOISE_SHARE` of a grey channel's."""
-    g = np.asarray(gain, dtype=np.float64)[:, None]
-    return (np.maximum(measured, 0) @ REC709_LUMA ** 2) / g + LUMA_NOISE_SHARE * noise.read_noise_e ** 2 / g ** 2
+    return noise_moments(measured, gain, noise)[1] @ REC709_LUMA ** 2
 
 
 #: Floor of the relative model residual s^2 the fusion weighs the model with.
@@ -545,8 +547,7 @@ def _fusion(model_y: np.ndarray, measured_y: np.ndarray, gain: np.ndarray, noise
     (infinite at or below :math:`\\epsilon`) and the measurement's weight."""
     beta = np.sqrt(np.mean(model_y ** 2, axis=1, keepdims=True))
     shape = np.maximum(1.0, beta / np.maximum(model_y, eps)) ** 2
-    g = np.asarray(gain, dtype=np.float64)[:, None]
-    v = np.maximum(measured_y, 0) / g + noise.read_noise_e ** 2 / g ** 2
+    v = noise_moments(measured_y, gain, noise)[1]
     var_meas = np.where(measured_y > eps, v / np.maximum(measured_y, eps) ** 2, np.inf)
     return shape, var_meas, s2 * shape / (s2 * shape + var_meas)
 
