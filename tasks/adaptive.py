@@ -44,7 +44,7 @@ __all__ = ["ADAPTIVE_VERSION", "AwaitingShot", "committee_bases", "adaptive_plan
            "step_measurement", "write_adaptive_report"]
 
 #: Raised when the adaptive records' meaning changes (their reuse key includes it).
-ADAPTIVE_VERSION = 5
+ADAPTIVE_VERSION = 6
 
 
 # --------------------------------------------------------------------------- executor and scores
