@@ -169,17 +169,18 @@ def ingest_database_stage(stores: list[str], out_dir: str, scheduler_address: st
 
     from distributed import Client
 
-    from flows.progress import progress_bar
+    from flows.progress import in_parts, progress_bar
     from tasks.ingest import btf_error_against_truth, ingest_capture
     from tasks.stores import open_capture_store
 
     results = {}
+    captures = [open_capture_store(store) for store in stores]     # opened once, for the ingest and the errors
     bar, update = progress_bar(name, progress, unit="view")
+    parts = in_parts(update, [capture.n_views for capture in captures])     # one count over every store's views
     with bar, Client(scheduler_address, set_as_default=False) as client:
-        for store in stores:
+        for store, capture, part in zip(stores, captures, parts):
             out = str(Path(out_dir) / Path(store).name)
-            capture = open_capture_store(store)              # opened once, for the ingest and the errors
             results[Path(store).stem] = {**ingest_capture(capture, out, client, calibration=calibration,
-                                                          progress=update),
+                                                          progress=part),
                                          **btf_error_against_truth(out, capture)}
     return results

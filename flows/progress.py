@@ -18,7 +18,7 @@ from __future__ import annotations
 import contextlib
 import sys
 import time
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:                     # importing tasks loads zarr: the CLI's first line comes before that
@@ -174,6 +174,18 @@ class _Closing:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def in_parts(update: Progress, sizes: Sequence[int]) -> list[Progress]:
+    """One display over consecutive runs (one per store, each counting from 0): the ``i``-th run's
+    ``update(done, total)`` is shown as the ``sizes`` of the runs before it, plus the units of its own that
+    it did not have to do (``sizes[i] - total``, reused), plus ``done``, of ``sum(sizes)``."""
+    grand = int(sum(sizes))
+
+    def part(before: int, size: int) -> Progress:
+        return lambda done, total: update(min(before + max(size - total, 0) + done, grand), grand)
+
+    return [part(int(sum(sizes[:i])), int(size)) for i, size in enumerate(sizes)]
 
 
 @contextlib.contextmanager

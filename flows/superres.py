@@ -76,15 +76,16 @@ def ingest_regions_stage(stores: list[str], out_dir: str, scheduler_address: str
     """Ingest every capture with its regions of interest (``--keep-roi``); finished ones are reused."""
     from distributed import Client
 
-    from flows.progress import progress_bar
+    from flows.progress import in_parts, progress_bar
     from tasks.ingest import ingest_capture
+    from tasks.stores import open_capture_store
 
+    captures = [open_capture_store(store) for store in stores]
     bar, update = progress_bar("superres: ingest with regions", progress, unit="view")
-    outs = []
+    outs = [str(Path(out_dir) / Path(store).name) for store in stores]
     with bar, Client(scheduler_address, set_as_default=False) as client:
-        for store in stores:
-            outs.append(str(Path(out_dir) / Path(store).name))
-            ingest_capture(store, outs[-1], client, keep_roi=True, progress=update)
+        for capture, out, part in zip(captures, outs, in_parts(update, [c.n_views for c in captures])):
+            ingest_capture(capture, out, client, keep_roi=True, progress=part)
     return outs
 
 

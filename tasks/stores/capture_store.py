@@ -138,6 +138,11 @@ class CaptureStore:
         return self.n_turn * self.n_cam * self.n_leds
 
     @property
+    def n_views(self) -> int:
+        """Turntable positions x cameras: the ingest's tasks (one per view)."""
+        return self.n_turn * self.n_cam
+
+    @property
     def texture_shape(self) -> tuple[int, int]:
         h, w = self.meta.texture_shape
         return int(h), int(w)

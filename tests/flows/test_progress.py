@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from flows.cli import build_parser, main
-from flows.progress import progress_bar, progress_bars
+from flows.progress import in_parts, progress_bar, progress_bars
 
 ROOT = Path(__file__).resolve().parents[2]
 #: ``2026-12-03 09:12:04 ingest: 40/96 views (42 %), 12.3 s``
@@ -138,3 +138,19 @@ def test_verbose_shows_prefect_and_dask_info_logs(ingest_run):
     assert code == 0, "\n".join(lines[-30:])
     assert any("distributed.scheduler - INFO" in x for x in lines), lines[:20]
     assert any("INFO" in x and "Flow run" in x for x in lines), lines[:40]
+
+
+def test_a_stage_over_several_stores_counts_every_stores_views_once(capsys):
+    """Three stores of 12 views in turn, the second reused whole (its run reports nothing) and the third
+    half: one count of 36 views that only rises, at most one line per tenth, not 12-view counts restarting."""
+    bar, update = progress_bar("ingest: 3 materials", True, unit="view")
+    first, _, third = in_parts(update, [12, 12, 12])
+    with bar:
+        for done in range(1, 13):
+            first(done, 12)
+        for done in range(1, 7):                    # 6 of the third store's views were done before
+            third(done, 6)
+    lines = capsys.readouterr().err.splitlines()
+    counts = [int(m.group(1)) for line in lines for m in [re.search(r": (\d+)/36 views", line)] if m]
+    assert counts == sorted(counts) and counts[-1] == 36 and len(lines) <= 12, lines
+    assert not any(re.search(r"/12 views", line) for line in lines), lines
