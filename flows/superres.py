@@ -99,6 +99,8 @@ def score_stage(kind: str, args: list[tuple], scheduler_address: str, progress: 
     from tasks.evaluate_superres import test_material, validation_material
 
     fn = validation_material if kind == "validation" else test_material
+    if not args:                                     # no such materials (the demo validates none): no display
+        return []
     bar, update = progress_bar(f"superres: {kind} materials", progress, unit="material")
     with bar, Client(scheduler_address, set_as_default=False) as client:
         return run_all(client, fn, args, update)
