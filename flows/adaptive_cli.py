@@ -15,7 +15,9 @@ from typing import Any
 ACQUIRE_HELP = """\
 Adaptive capture (--adaptive): a closed loop of plan -> capture -> reconstruct ->
 choose the next camera-parallel (turntable, LED) group, until the predicted
-relative L2 error of log Y reaches --target-error or --budget shots are spent.
+relative L2 error of log Y has been at or under --target-error at 3 consecutive
+steps after the start design (early predictions run low), or --budget shots are
+spent.
 The error is predicted without the truth, from the posterior of the class ALS
 basis' coefficients (paper 4 eq. 10, Tikhonov lambda Sigma^-1) under the
 sensor's noise and a model residual estimated from the material's own rows.
@@ -52,7 +54,8 @@ def add_acquire_arguments(p: argparse.ArgumentParser) -> None:
 
     p.add_argument("--adaptive", action="store_true", help="adaptive capture (the only mode so far)")
     p.add_argument("--target-error", type=float, required=True, metavar="E",
-                   help="stop when the predicted relative L2 error of log Y is at most E (a fraction: 0.2 = 20 %%)")
+                   help="stop when the predicted relative L2 error of log Y has been at most E (a fraction: 0.2 = "
+                        "20 %%) at 3 consecutive steps")
     p.add_argument("--budget", type=int, default=None, metavar="SHOTS",
                    help="most shots ((turntable, LED) groups) [default: all groups]")
     source = p.add_mutually_exclusive_group(required=True)

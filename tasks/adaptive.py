@@ -29,7 +29,8 @@ from typing import Any
 import numpy as np
 import zarr
 
-from btfcore.acquisition.adaptive import AdaptiveResult, AdaptiveState, group_pairs, log_y_error, run_adaptive
+from btfcore.acquisition.adaptive import (STOP_PATIENCE, AdaptiveResult, AdaptiveState, group_pairs, log_y_error,
+                                         run_adaptive, stop_index)
 from btfcore.acquisition.band_evaluation import noisy_single
 from btfcore.acquisition.noise import SensorNoise, bracket_gain, exposure_gain
 from btfcore.acquisition.plan import CapturePlan, ExposureModel, Shot
@@ -490,11 +491,11 @@ def adaptive_bars(records: dict[str, dict[str, Any]], structured: Sequence[str] 
             "at_target_stop": target_stops(records)}
 
 
-def target_stops(records: dict[str, dict[str, Any]]) -> dict[str, dict[str, float]]:
+def target_stops(records: dict[str, dict[str, Any]], patience: int | None = None) -> dict[str, dict[str, float]]:
     """Bar 2 where the loop stops at a target instead of its budget, from the budget run's steps (the choice
     does not use the target, so a run with one takes the same steps up to its stop): for the fixed random
-    swap's error at each of the thesis' n_s as the target, the first step after the start design whose
-    prediction reaches it (else the last). ``{"n_s=N": {"share_within_25pct", "true_over_target_max",
+    swap's error at each of the thesis' n_s as the target, the step :func:`stop_index` stops at with
+    ``patience`` (default: the run's, else :data:`STOP_PATIENCE`; the last step where none is). ``{"n_s=N": {"share_within_25pct", "true_over_target_max",
     "true_over_target_median"}}``: how often the prediction at that stop is within 25 % of the true error,
     and how far the true error is then over the target asked for."""
     out: dict[str, dict[str, float]] = {}
@@ -504,9 +505,11 @@ def target_stops(records: dict[str, dict[str, Any]]) -> dict[str, dict[str, floa
             target = next((f["error"] for f in rec["fixed"] if f["n_thesis"] == n_s), None)
             if target is None:
                 continue
-            n_start = rec.get("settings", {}).get("n_start", 1)
-            stop = next((s for s in rec["steps"] if s["n_shots"] >= n_start and s["predicted"] <= target),
-                        rec["steps"][-1])
+            settings = rec.get("settings", {})
+            at = stop_index([s["predicted"] for s in rec["steps"]], [s["n_shots"] for s in rec["steps"]], target,
+                            settings.get("n_start", 1), patience if patience is not None else
+                            settings.get("patience", STOP_PATIENCE))
+            stop = rec["steps"][-1 if at is None else at]
             within.append(abs(stop["predicted"] - stop["true"]) <= 0.25 * stop["true"])
             over.append(stop["true"] / target)
         if within:

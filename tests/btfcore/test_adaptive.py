@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from btfcore.acquisition.adaptive import (LUMA_NOISE_SHARE, MISFIT_MEDIAN_CAP, AdaptiveState, expected_log_error, fuse_measured,
+from btfcore.acquisition.adaptive import (LUMA_NOISE_SHARE, MISFIT_MEDIAN_CAP, STOP_PATIENCE, AdaptiveState, expected_log_error, fuse_measured,
                                          fused_error, group_rows, log_y_error, luminance_noise, run_adaptive,
                                          shot_costs, start_groups)
 from btfcore.model.colour import LOG_YUV_EPS, REC709_LUMA
@@ -118,10 +118,14 @@ def test_stops_at_the_target_and_is_seeded():
     preds = [s.predicted for s in free.steps]
     target = float(np.quantile(preds[3:], 0.5))
     res = run_adaptive(U, sigma, GEOMETRY, NOISE, _measure(truth, 3), target=target, **kw)
-    assert res.stopped == "target"
-    assert res.steps[-1].predicted <= target
+    assert res.stopped == "target" and res.settings["patience"] == STOP_PATIENCE == 3
     n0 = res.settings["n_start"]
-    assert all(s.predicted > target for s in res.steps[n0 - 1:-1])
+    under = [s.n_shots >= n0 and s.predicted <= target for s in res.steps]
+    assert all(under[-3:])                                         # at or under it at the last 3 steps
+    assert not any(all(under[i:i + 3]) for i in range(len(under) - 3))      # and never 3 in a row before
+    once = run_adaptive(U, sigma, GEOMETRY, NOISE, _measure(truth, 3), target=target, patience=1, **kw)
+    assert once.steps[-1].predicted <= target and all(s.predicted > target for s in once.steps[n0 - 1:-1])
+    assert len(once.steps) < len(res.steps)
     again = run_adaptive(U, sigma, GEOMETRY, NOISE, _measure(truth, 3), target=target, **kw)
     assert [s.group for s in again.steps] == [s.group for s in res.steps]
     assert [s.predicted for s in again.steps] == [s.predicted for s in res.steps]

@@ -125,18 +125,21 @@ def test_evaluation_config_names_an_unknown_adaptive_choice():
 
 
 def test_target_stops_take_the_first_step_after_the_start_whose_prediction_reaches_it():
-    """A loop stopped at a target stops at the first prediction at or under it after the start design, where
-    an under-prediction makes the true error exceed the target: the share within 25 % there, not at the
-    budget."""
+    """A loop stopped at a target (here with patience 1) stops at the first prediction at or under it after the
+    start design, where an under-prediction makes the true error exceed the target: the share within 25 %
+    there, not at the budget. With the default patience of 3 it goes on until three steps in a row are."""
     from tasks.adaptive import target_stops
 
     trues, preds = [0.6, 0.5, 0.4, 0.3, 0.2], [0.5, 0.1, 0.2, 0.3, 0.2]
     steps = [{"n_shots": i + 1, "true": t, "predicted": p, "predicted_cv": p} for i, (t, p) in enumerate(zip(trues, preds))]
     records = {"a": {"class": "carpet", "n_shots": 5, "steps": steps, "settings": {"n_start": 3},
                      "fixed": [{"n_thesis": 400, "n_shots": 5, "error": 0.25}, {"n_thesis": 100, "error": 0.05}]}}
-    stops = target_stops(records)
+    stops = target_stops(records, patience=1)
     assert stops["n_s=400"] == {"share_within_25pct": 0.0, "true_over_target_max": pytest.approx(1.6),
                                 "true_over_target_median": pytest.approx(1.6)}   # step 3: 0.2 predicted, 0.4 true
     assert stops["n_s=100"]["true_over_target_max"] == pytest.approx(4.0)       # never reached: the last step
     assert stops["n_s=100"]["share_within_25pct"] == 1.0
+    records["a"]["settings"]["patience"] = 1
     assert adaptive_bars(records)["at_target_stop"] == stops
+    patient = target_stops(records, patience=3)["n_s=400"]           # never 3 in a row: the last step
+    assert patient["true_over_target_max"] == pytest.approx(0.8) and patient["share_within_25pct"] == 1.0
