@@ -720,6 +720,16 @@ def stop_index(predicted: Sequence[float], n_shots: Sequence[int], target: float
     return None
 
 
+def _check_rules(predictor: str, select: str, committee: Sequence[tuple[np.ndarray, np.ndarray]]) -> None:
+    """:func:`run_adaptive`'s stop and choice rules are known (bad input raises, naming the argument)."""
+    if predictor not in PREDICTORS:
+        raise ValueError(f"predictor {predictor!r} is unknown; choose one of {', '.join(PREDICTORS)}")
+    if select not in SELECTIONS:
+        raise ValueError(f"select {select!r} is unknown; choose one of {', '.join(SELECTIONS)}")
+    if select == "committee" and not committee:
+        raise ValueError("select='committee' needs other bases (committee=); none were given")
+
+
 def run_adaptive(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, noise: SensorNoise,
                  measure: Callable[[int, np.ndarray], tuple[np.ndarray, np.ndarray]], *, n_tx: int,
                  target: float, budget: int, lam: float = LAMBDA_ALS, n_start: int | None = None,
@@ -786,12 +796,7 @@ def run_adaptive(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, noise: Se
     -------
     result : AdaptiveResult
     """
-    if predictor not in PREDICTORS:
-        raise ValueError(f"predictor {predictor!r} is unknown; choose one of {', '.join(PREDICTORS)}")
-    if select not in SELECTIONS:
-        raise ValueError(f"select {select!r} is unknown; choose one of {', '.join(SELECTIONS)}")
-    if select == "committee" and not committee:
-        raise ValueError("select='committee' needs other bases (committee=); none were given")
+    _check_rules(predictor, select, committee)
     state = AdaptiveState(U, sigma, geometry, noise, lam=lam, n_tx=n_tx, seed=seed, weighting=weighting,
                           committee=committee, measured_rows=measured_rows)
     gains = state.committee_gains if select == "committee" else state.gains
