@@ -495,9 +495,11 @@ def target_stops(records: dict[str, dict[str, Any]], patience: int | None = None
     """Bar 2 where the loop stops at a target instead of its budget, from the budget run's steps (the choice
     does not use the target, so a run with one takes the same steps up to its stop): for the fixed random
     swap's error at each of the thesis' n_s as the target, the step :func:`stop_index` stops at with
-    ``patience`` (default: the run's, else :data:`STOP_PATIENCE`; the last step where none is). ``{"n_s=N": {"share_within_25pct", "true_over_target_max",
-    "true_over_target_median"}}``: how often the prediction at that stop is within 25 % of the true error,
-    and how far the true error is then over the target asked for."""
+    ``patience`` (default: the run's, else :data:`STOP_PATIENCE`; the last step where none is).
+
+    Returns ``{"n_s=N": {"share_within_25pct", "true_over_target_max", "true_over_target_median"}}``: how
+    often the prediction at that stop is within 25 % of the true error, and how far the true error is then
+    over the target asked for."""
     out: dict[str, dict[str, float]] = {}
     for n_s in THESIS_N_S:
         within, over = [], []

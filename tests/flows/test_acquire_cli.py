@@ -173,3 +173,16 @@ def test_a_dome_closes_the_loop_through_the_plan_files(acquisition_evaluation, m
     (wrong / "step_000.zarr").symlink_to(measured / "step_001.zarr", target_is_directory=True)
     code, _, err = run_btf(*loop[:7], wrong, *loop[8:-1], tmp_path / "acq-wrong")
     assert code == 2 and "step_000.zarr: measures rows" in err and "plans/step_000.json" in err, err
+
+
+def test_the_help_states_the_loops_stop_rule():
+    """The CLI's help (which imports no numerics) names the loop's patience as btfcore has it."""
+    import argparse
+
+    from btfcore.acquisition.adaptive import STOP_PATIENCE
+    from flows.adaptive_cli import ACQUIRE_HELP, add_acquire_arguments
+
+    assert f"at {STOP_PATIENCE} consecutive" in " ".join(ACQUIRE_HELP.split())
+    parser = argparse.ArgumentParser()
+    add_acquire_arguments(parser)
+    assert f"at {STOP_PATIENCE} consecutive steps" in " ".join(parser.format_help().split())
