@@ -510,6 +510,7 @@ def design_patterns(model: PatternModel, m: int, *, seed: int = 0, sweeps: int =
         patterns[j] = _improve(model, o, G, start, max_flips, tol)
         history.append(_objective(model, patterns[:j + 1]))
     rng = np.random.default_rng(seed)
+    current = history[-1]                                                  # J of the m patterns (m >= 1)
     for _ in range(int(sweeps)):                                           # coordinate descent on the bits
         for j in rng.permutation(m):
             o = _others(model, np.delete(patterns, j, axis=0))
@@ -517,10 +518,13 @@ def design_patterns(model: PatternModel, m: int, *, seed: int = 0, sweeps: int =
             if model.single_exposure:                  # scored with the others' meter held: keep it if J falls
                 trial = patterns.copy()
                 trial[j] = new
-                if _objective(model, trial) > _objective(model, patterns):
+                value = _objective(model, trial)
+                if value > current:
                     continue
+                current = value
             patterns[j] = new
-        history.append(_objective(model, patterns))
+        current = current if model.single_exposure else _objective(model, patterns)
+        history.append(current)
     return _design(model, patterns, "greedy", history[:-1])
 
 
