@@ -416,17 +416,23 @@ def _starter(name: str) -> Callable[[dict[str, Any], dict[str, str]], Any]:
 _CLUSTER_STARTERS = {"local": _local_cluster, "slurm": _starter("jobqueue_cluster"),
                      "pbs": _starter("jobqueue_cluster"), "kubernetes": _starter("kubernetes_cluster")}
 
-#: distributed's loggers that report, at WARNING, a worker process killed or a task cancelled while
-#: closing (``Worker process still alive after 4.0 seconds, killing``, ``Async instruction ... cancelled``).
+#: distributed's loggers that report the expected end of a closing cluster: at WARNING a worker process
+#: killed or a task cancelled (``Worker process still alive after 4.0 seconds, killing``, ``Async
+#: instruction ... cancelled``), at ERROR with a traceback a worker's heartbeat that met the scheduler's
+#: closed connection (``Failed to communicate with scheduler during heartbeat``, a race of every close).
 _CLOSE_LOGGERS = ("distributed",)
+
+#: Their level while the cluster closes: the run's outcome is decided and reported by ``btf`` itself.
+_CLOSE_LOG_LEVEL = logging.CRITICAL
 
 
 def _raise_log_level(names: tuple[str, ...] = _CLOSE_LOGGERS) -> None:
-    """Raise ``names`` to ERROR where they are at the quiet default (WARNING); a user's INFO stays."""
+    """Raise ``names`` to ``_CLOSE_LOG_LEVEL`` where they are at the quiet default (WARNING); a user's
+    INFO (``btf --verbose``, ``DASK_LOGGING__DISTRIBUTED=info``) stays."""
     for name in names:
         logger = logging.getLogger(name)
         if logger.getEffectiveLevel() == logging.WARNING:
-            logger.setLevel(logging.ERROR)
+            logger.setLevel(_CLOSE_LOG_LEVEL)
 
 
 #: Seconds an idle worker process gets to exit at the end of a run before its nanny kills it.
@@ -449,8 +455,9 @@ def _close_quietly(client: Any, cluster: Any) -> None:
     After a run that finished, no task runs: each worker is asked to close and given
     ``IDLE_WORKER_CLOSE_S`` to exit, so that none is killed however loaded the machine is. After a
     failed run a worker may still be busy with a task of it: that one gets distributed's grace (4 s)
-    to finish and is then killed, as before, and the nanny's "still alive ... killing" and the
-    workers' "task cancelled" warnings, which describe that expected end, are not printed. Closing
+    to finish and is then killed, as before. What distributed logs on the way (``_CLOSE_LOGGERS``:
+    the nanny's "still alive ... killing", the workers' "task cancelled" and a heartbeat's traceback
+    against the closed scheduler) describes that expected end and is not printed. Closing
     the client first lets the scheduler release its tasks before the workers are asked to stop.
     """
     distributed_logger = logging.getLogger("distributed")
@@ -465,8 +472,7 @@ def _close_quietly(client: Any, cluster: Any) -> None:
                     client.sync(client._run, _raise_log_level, on_error="ignore", callback_timeout=5)
             with contextlib.suppress(Exception):
                 client.close(timeout=10)
-        if distributed_logger.getEffectiveLevel() == logging.WARNING:
-            distributed_logger.setLevel(logging.ERROR)
+        _raise_log_level()
         from distributed import LocalCluster
 
         if idle and isinstance(cluster, LocalCluster):  # a job-queue cluster's "workers" are its jobs
