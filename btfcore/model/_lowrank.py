@@ -242,6 +242,41 @@ def largest_angle(U: np.ndarray, V: np.ndarray) -> float:
     return float(np.arccos(min(float(c[-1]), 1.0)))
 
 
+def nystrom(C: np.ndarray, S: np.ndarray, eps: float) -> tuple[np.ndarray, np.ndarray]:
+    """Eigenpairs of the Nyström approximation of :math:`G = B B^T` from ``C`` and ``S = G C``.
+
+    With ``C`` ``(n, l)`` orthonormal, :math:`\\hat G = S (C^T S)^{-1} S^T` (Halko et al. 2011, §5.4) is
+    the best PSD approximation of ``G`` that ``S`` determines. Its eigenvectors are the left singular
+    vectors of :math:`S (C^T S)^{-1/2}`, i.e. of :math:`B Q_W` with :math:`Q_W` an orthonormal basis of
+    :math:`W = B^T C`, whose Gram matrix is :math:`W^T W = C^T S`: the rank-``l`` approximation whose
+    right subspace is ``B^T C``, half a power iteration beyond the Rayleigh-Ritz basis of span(C) (its
+    vectors are :math:`B B^T C`, not ``C``), with no further pass over ``B``.
+
+    Stabilised as in Tropp et al. 2017 (Alg. 3): a shift :math:`\\nu =` ``eps`` :math:`\\|S\\|_F` is
+    added (:math:`S + \\nu C`) so that the Cholesky factor of :math:`C^T S + \\nu I` exists although
+    ``S`` carries rounding (float32 products), and subtracted from the eigenvalues again; directions at
+    the rounding level are damped instead of amplified. Falls back to :func:`ritz` if the Cholesky
+    factorisation fails anyway.
+
+    Returns
+    -------
+    U : (n, l) ndarray
+        Eigenvectors of :math:`\\hat G`, decreasing.
+    sigma : (l,) ndarray
+        :math:`\\sqrt{\\lambda}` of its eigenvalues, decreasing.
+    """
+    nu = eps * float(np.linalg.norm(S))
+    Y = S + nu * C
+    H = C.T @ Y
+    try:
+        L = np.linalg.cholesky((H + H.T) / 2)                      # C^T Y = L L^T
+    except np.linalg.LinAlgError:
+        return ritz(C, C.T @ S)
+    E = linalg.solve_triangular(L, Y.T, lower=True).T              # Y L^-T: E E^T = Y (C^T Y)^-1 Y^T
+    U, s, _ = np.linalg.svd(E, full_matrices=False)
+    return U, np.sqrt(np.maximum(s ** 2 - nu, 0.0))
+
+
 def ritz(Q: np.ndarray, H: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Rayleigh-Ritz on span(Q): ``H = Q^T (B B^T) Q`` -> all Ritz vectors ``Q W`` and ``sigma`` (decreasing)."""
     lam, W = linalg.eigh((H + H.T) / 2)

@@ -35,12 +35,14 @@ import numpy as np
 
 from btfcore import BtfWarning
 from btfcore.model._lowrank import RANK_RTOL, Blocks, BlockSource, TruncatedSVD, as_block_source, check_int, check_k, \
-    check_rank, fix_signs, for_each_block, largest_angle, orthonormalise, ritz
+    check_rank, fix_signs, for_each_block, largest_angle, nystrom, orthonormalise, ritz
 
 __all__ = ["CRITERIA", "block_power_iteration", "check_iteration_args", "empca"]
 
 #: Convergence criteria of :func:`empca`.
 CRITERIA: tuple[str, ...] = ("angle", "energy")
+#: What :func:`block_power_iteration` returns from its last pass.
+FINAL_STEPS: tuple[str, ...] = ("ritz", "nystrom")
 
 
 def block_power_iteration(
@@ -54,6 +56,7 @@ def block_power_iteration(
     criterion: str = "angle",
     seed: int = 0,
     rank_rtol: float = RANK_RTOL,
+    final: str = "ritz",
 ) -> tuple[np.ndarray, np.ndarray, int, float, bool, float]:
     """EM-PCA / subspace iteration with ``n_basis >= k`` vectors and a Rayleigh-Ritz step per pass.
 
@@ -79,6 +82,11 @@ def block_power_iteration(
         Seed of the Gaussian start ``C``.
     rank_rtol : float
         Singular values at or below ``rank_rtol * sigma_1`` count as zero.
+    final : {'ritz', 'nystrom'}
+        The result: the Ritz basis of the last pass' ``C`` (EM-PCA), or the eigenvectors of the
+        Nyström approximation from that ``C`` and the last pass' ``S = B B^T C``
+        (:func:`btfcore.model._lowrank.nystrom`: half a power iteration more for no pass; only with
+        ``tol=None``, where the last pass is known in advance).
 
     Returns
     -------
@@ -114,6 +122,9 @@ def block_power_iteration(
     """
     if criterion not in CRITERIA:
         raise ValueError(f"criterion must be one of {CRITERIA}, got {criterion!r}")
+    if final not in FINAL_STEPS or (final == "nystrom" and tol is not None):
+        raise ValueError(f"final must be one of {FINAL_STEPS} ('nystrom' with tol=None), got {final!r}")
+    eps = float(np.finfo(np.float64).eps)                         # of the products: float32 if a block is
     C = orthonormalise(np.random.default_rng(seed).standard_normal((n_lv, n_basis)))
     n_cols, prev, change, it = None, None, np.inf, 0
     for it in range(1, max_iter + 1):
@@ -121,6 +132,8 @@ def block_power_iteration(
         cast = {np.dtype(np.float64): C, np.dtype(np.float32): C.astype(np.float32)}
 
         def visit(b: np.ndarray) -> None:
+            nonlocal eps
+            eps = max(eps, float(np.finfo(b.dtype).eps))
             X = cast[b.dtype].T @ b                                 # E-step X_j = (C^T C)^-1 C^T B_j  (Roweis §3)
             S[...] += b @ X.T                                       # M-step numerator sum_j B_j X_j^T
 
@@ -142,6 +155,8 @@ def block_power_iteration(
             break
         if it < max_iter:                                           # the last pass' S is not iterated on
             C = orthonormalise(S)                                   # M-step C = S T^-1, orthonormalised
+    if final == "nystrom":                                          # from the last pass' C and S = B B^T C
+        V, sigma = nystrom(C, S, eps)
     check_rank(sigma, k, f"B ({n_lv}, {n_cols})", rank_rtol)
     converged = tol is None or change < tol
     return fix_signs(V[:, :k]), sigma[:k].copy(), it, change, converged, norm_sq

@@ -10,9 +10,10 @@ read ``B`` as column blocks, never whole, and accumulate in float64:
   the pass costs :math:`n_{lv}^2 n_{tx} / 2` multiply-adds (in float64).
 * ``'randomized'``: Halko et al.'s range finder with ``oversample`` extra
   vectors (default ``max(10, k // 2)``) and ``n_iter`` power iterations
-  (default 3), QR re-orthonormalised every pass
+  (default 3), re-orthonormalised every pass
   (docs/architecture.md, "Pitfalls": plain power iterations lose accuracy in
-  float32).
+  float32), ending in the Nyström step of the Gram matrix ([4]_): ``n_iter + 1``
+  passes, the ``2 n_iter + 2`` products of Halko's Alg. 4.4.
 * ``'empca'``: :func:`btfcore.model.empca.empca`, iterated to a tolerance.
 
 ``'auto'`` picks ``'gram'`` when ``G`` fits ``memory_bytes`` and its pass costs
@@ -26,6 +27,9 @@ References
    decompositions", SIAM Review 53(2), 2011, Alg. 4.4 and 5.1.
 .. [2] S. Roweis, "EM algorithms for PCA and SPCA", NIPS 10, 1998.
 .. [3] The thesis, App. paper 1 (den Brok et al.), §4.1.
+.. [4] J. A. Tropp, A. Yurtsever, M. Udell and V. Cevher, "Fixed-rank
+   approximation of a positive-semidefinite matrix from streaming data",
+   NeurIPS 2017, Alg. 3 (the shifted Nyström step); Halko et al. [1]_, §5.4.
 """
 
 from __future__ import annotations
@@ -59,7 +63,9 @@ def default_oversample(k: int) -> int:
     q = 4 (6 passes, the same arithmetic) gave 8e-4. At the thesis' scale
     (26,136 x 49,152, power-law spectrum i^-0.75, benchmarks/bench_model_svd.py)
     p = 64, q = 3 gave 0.110 % excess error, just over issue 4's 0.1 % bar,
-    and p = 128, q = 3 gave 0.021 % in 71-77 s: hence k // 2.
+    and p = 128, q = 3 gave 0.021 % in 71-77 s: hence k // 2. (Those runs
+    made 5 passes and ended in Rayleigh-Ritz; with the Nyström end the same
+    q = 3, p = 128 makes 4 passes at 0.0214 %, 57 s on a 206 GFLOP/s host.)
     """
     return max(10, k // 2)
 
@@ -68,16 +74,16 @@ def choose_method(n_lv: int, k: int, *, memory_bytes: int, oversample: int | Non
     """The rule of ``method='auto'``: ``'gram'`` or ``'randomized'``.
 
     ``'gram'`` when :math:`8 n_{lv}^2 \\le` ``memory_bytes`` (the float64 Gram
-    matrix) and :math:`n_{lv} \\le 2 l (q + 2)`, ``l = k + oversample``,
+    matrix) and :math:`n_{lv} \\le 2 l (q + 1)`, ``l = k + oversample``,
     ``q = n_iter``: its one float64 pass of :math:`n_{lv}^2 n_{tx} / 2`
     multiply-adds (a symmetric rank-k update, at about half the float32
-    rate) then costs no more than the randomized method's :math:`q + 2`
+    rate) then costs no more than the randomized method's :math:`q + 1`
     passes of :math:`2 n_{lv} n_{tx} l` each. Otherwise ``'randomized'`` (predictable cost, unlike EM-PCA's
     data-dependent number of passes). For the thesis' dome (26,136 rows,
     k = 256) this is randomized; for the tiny test dome (192 rows), gram.
     """
     l = min(k + (default_oversample(k) if oversample is None else oversample), n_lv)
-    return "gram" if 8 * n_lv**2 <= memory_bytes and n_lv <= 2 * l * (n_iter + 2) else "randomized"
+    return "gram" if 8 * n_lv**2 <= memory_bytes and n_lv <= 2 * l * (n_iter + 1) else "randomized"
 
 
 def truncated_svd(
@@ -124,7 +130,7 @@ def truncated_svd(
         :func:`default_oversample` for 'randomized' and 'auto', 0 (Roweis'
         method) for 'empca'.
     n_iter : int
-        Power iterations ``q`` of 'randomized': ``q + 2`` passes over the data.
+        Power iterations ``q`` of 'randomized': ``q + 1`` passes over the data.
     tol, max_iter, criterion :
         Convergence of 'empca' (:func:`btfcore.model.empca.empca`).
 
@@ -154,13 +160,18 @@ def truncated_svd(
     not resolved.
 
     Randomized: Halko et al.'s Alg. 4.4 (randomized subspace iteration) on
-    :math:`G`, started from a Gaussian :math:`(n_{lv}, l)` matrix on the row
-    side, i.e. with test matrix :math:`\\Omega = B^T \\Omega_0`, so that the
-    result does not depend on how the columns are blocked; each pass forms
-    :math:`Y = B (B^T Q)` block by block and :math:`Q = \\mathrm{qr}(Y)`, and
-    the last pass' :math:`Q^T Y = Q^T B B^T Q` gives U and sigma by
-    Rayleigh-Ritz (Alg. 5.1's small SVD). This is
-    :func:`btfcore.model.empca.block_power_iteration` with a fixed pass count.
+    :math:`G = B B^T`, started from a Gaussian :math:`(n_{lv}, l)` matrix on the row
+    side, so that the result does not depend on how the columns are blocked; each pass forms
+    :math:`Y = B (B^T Q)` block by block and :math:`Q = \\mathrm{orth}(Y)`. The
+    last pass' ``Q`` and ``Y`` give U and sigma by the Nyström approximation
+    :math:`Y (Q^T Y)^{-1} Y^T` of ``G`` (Halko et al. §5.4, shifted as in [4]_,
+    :func:`btfcore.model._lowrank.nystrom`): the left singular vectors of ``B``
+    restricted to the right subspace :math:`B^T Q`, half a power iteration
+    beyond the Rayleigh-Ritz basis of span(Q) at no extra pass. With
+    ``n_iter`` = q that is :math:`(B^T B)^q B^T \\Omega_0`, the subspace
+    Alg. 4.4 builds with ``q`` from the other side, in its ``2q + 2``
+    products. This is :func:`btfcore.model.empca.block_power_iteration` with
+    a fixed pass count and ``final='nystrom'``.
     """
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
@@ -180,7 +191,8 @@ def truncated_svd(
                             res.converged, res.norm_sq, rows_id)
     if used == "randomized":
         U, sigma, it, change, _, norm_sq = block_power_iteration(
-            source, n_lv, k, n_basis, max_iter=n_iter + 2, tol=None, seed=seed, rank_rtol=rank_rtol)
+            source, n_lv, k, n_basis, max_iter=n_iter + 1, tol=None, seed=seed, rank_rtol=rank_rtol,
+            final="nystrom")
         settings.update(oversample=int(p), n_iter=int(n_iter))
         return TruncatedSVD(U, sigma, used, settings, it, change, True, norm_sq, rows_id)
     U, sigma, norm_sq = _gram(source, n_lv, k, rank_rtol)
