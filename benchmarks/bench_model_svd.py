@@ -128,7 +128,7 @@ def zarr_read_rate(store: Path) -> tuple[float, float]:
     from tasks.model import blocks
 
     n_bytes, start = 0, time.perf_counter()
-    for b in blocks(str(store), "als")():
+    for b in blocks(str(store), "als", transient=True)():
         n_bytes += b.nbytes
     seconds = time.perf_counter() - start
     return n_bytes / 1e9 / seconds, seconds
@@ -237,7 +237,8 @@ def _run_ours(pb: _Problem, configs: list[tuple[int | None, int | None]], repeat
         for rep in range(repeats):
             log(f"ours: randomized {given or 'library defaults'} (run {rep + 1})")
             start = time.perf_counter()
-            res = truncated_svd(blocks(str(pb.store), "als"), n_lv, k, "randomized", seed=pb.seed, **given)
+            res = truncated_svd(blocks(str(pb.store), "als", transient=True), n_lv, k, "randomized", seed=pb.seed,
+                                **given)
             seconds = time.perf_counter() - start
             q, p = res.settings["n_iter"], res.settings["oversample"]
             excess = pb.excess(res.U)

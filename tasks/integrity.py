@@ -41,6 +41,7 @@ from typing import Any
 import numpy as np
 import zarr
 from zarr.codecs import Crc32cCodec
+from zarr.core.buffer import default_buffer_prototype
 from zarr.core.codec_pipeline import BatchedCodecPipeline
 from zarr.core.sync import sync
 
@@ -58,6 +59,7 @@ __all__ = [
     "missing_problem",
     "nonfinite_problem",
     "open_any_store",
+    "read_whole_chunks",
     "rerun_hint",
     "store_kind",
     "stored_chunks",
@@ -373,6 +375,50 @@ def chunk_files_exist(array: zarr.Array, chunks: Sequence[tuple[int, ...]]) -> l
         return [await array.store.exists(prefix + key) for key in keys]
 
     return sync(exist())
+
+
+def read_whole_chunks(array: zarr.Array, start: int, stop: int, out: np.ndarray) -> None:
+    """``out[...] = array[:, start:stop]`` for an array chunked along its first two axes only.
+
+    Where the rows ``start:stop`` are exactly one chunk's (not the padded edge chunk), the array is
+    uncompressed with a CRC32C checksum on a local store (what :func:`create_array` makes) and every
+    chunk file has its exact size, each chunk file is read straight into its part of ``out`` (C
+    contiguous) and its checksum verified there: one copy, where Zarr reads a chunk into bytes and
+    copies it into ``out`` again (0.18-0.22 s against 0.49-0.51 s for a 522 MB band of 132 chunks,
+    docs/benchmarks.md 2026-12-05). Anything else, a missing chunk or a checksum that does not match
+    included, is read through Zarr, which returns fill values or raises :class:`CorruptChunkError`
+    naming the chunk, as every other read does.
+    """
+    import google_crc32c
+
+    shape, chunks = array.shape, array.chunks
+    local = _local_root(array)
+    fast = (local is not None and out.flags.c_contiguous and out.shape == (shape[0], stop - start, *shape[2:])
+            and start % chunks[1] == 0 and stop - start == chunks[1] and stop <= shape[1]
+            and tuple(chunks[2:]) == tuple(shape[2:]) and shape[0] % chunks[0] == 0
+            and not array.filters and len(array.compressors) == 1 and has_checksums(array)
+            and getattr(array.serializer, "endian", None) is not None and array.serializer.endian.value == "little"
+            and out.dtype == _native_dtype(array.dtype) and out.dtype.byteorder in ("=", "<", "|"))
+    if fast:
+        flat = out.reshape(-1).view(np.uint8)
+        size = flat.size // (shape[0] // chunks[0])                     # bytes of one chunk
+        rest = (0,) * (len(shape) - 2)
+        for i in range(shape[0] // chunks[0]):
+            key = array.metadata.encode_chunk_key((i, start // chunks[1], *rest))
+            part = flat[i * size:(i + 1) * size]
+            try:
+                with open(os.path.join(local, *key.split("/")), "rb", buffering=0) as f:
+                    if os.fstat(f.fileno()).st_size != size + 4 or f.readinto(memoryview(part)) != size:
+                        break
+                    stored = int.from_bytes(f.read(4), "little")
+            except OSError:
+                break
+            if google_crc32c.value(part) != stored:
+                break
+        else:
+            return
+    array.get_basic_selection((slice(None), slice(start, stop)),
+                              out=default_buffer_prototype().nd_buffer.from_numpy_array(out))
 
 
 #: Resume markers that say which chunks hold data: ``schema -> [(array, marker, axes)]``; marker

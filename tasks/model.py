@@ -52,7 +52,7 @@ from btfcore.model.eigenspace_merging import merge_eigenspaces
 from btfcore.model.truncated_svd import truncated_svd
 from tasks.compute import run_all
 from tasks.faults import kill_point
-from tasks.integrity import create_array
+from tasks.integrity import create_array, read_whole_chunks
 from tasks.staging import (
     begin_store,
     commit_staged,
@@ -233,7 +233,7 @@ def _bands(btf: zarr.Array, multiple: int = 1, max_bytes: int | None = None) -> 
             for s in range(r, min(r + step, usable), sub)]
 
 
-def blocks(path: str, basis: str, patch: int = 3, max_bytes: int | None = None
+def blocks(path: str, basis: str, patch: int = 3, max_bytes: int | None = None, *, transient: bool = False
            ) -> Callable[[], Iterator[np.ndarray]]:
     """A re-iterable source of ``(rows, m_j)`` column blocks of one basis' matrix of a material,
     one block per texel band (:func:`_bands`; ``max_bytes`` bounds a band's float32 bytes).
@@ -246,6 +246,12 @@ def blocks(path: str, basis: str, patch: int = 3, max_bytes: int | None = None
     When the whole matrix fits in ``max_bytes`` its blocks are read and
     converted once and kept for every later pass (a small material: the
     passes of a fit would otherwise each re-read and re-convert it).
+
+    ``transient=True`` (a consumer that is done with a block when it asks for the next, as the fits
+    are): the bands are read into two buffers the source keeps and reuses, so a yielded block is valid
+    only until the next one is requested, and may be changed in place. A freshly allocated band costs
+    its page faults on every read: 0.9-1.4 s against 0.25 s into a reused buffer for a 522 MB band
+    (docs/benchmarks.md, 2026-12-05).
     """
     btf = zarr.open_group(path, mode="r", zarr_format=3)["btf"]
     n_lv = btf.shape[0]
@@ -253,35 +259,48 @@ def blocks(path: str, basis: str, patch: int = 3, max_bytes: int | None = None
     kept: list[np.ndarray] = []
     linear = basis in ("als", LINEAR_SVD)
     keep = max_bytes is not None and 4 * n_lv * int(np.prod(btf.shape[1:])) // (1 if linear else 3) <= max_bytes
+    bands = _bands(btf, multiple, max_bytes)
+    row_size = n_lv * int(np.prod(btf.shape[2:]))
+    slots: list[np.ndarray] = []                                # reused band buffers (transient only)
 
     def cached() -> Iterator[np.ndarray]:
         if not kept:
-            kept.extend(read())
+            kept.extend(read(reuse=False))
         yield from kept
 
-    def block(r0: int, r1: int) -> np.ndarray:
-        band = np.asarray(btf[:, r0:r1])                                     # (n_lv, rows, w, 3)
+    def band(r0: int, r1: int, slot: int | None) -> np.ndarray:
+        if slot is None:
+            return np.asarray(btf[:, r0:r1])                                  # (n_lv, rows, w, 3)
+        if not slots:                                   # one per band in flight: two when reading ahead
+            slots.extend(np.empty(row_size * max(b1 - b0 for b0, b1 in bands), btf.dtype) for _ in range(n_slots))
+        out = slots[slot][:row_size * (r1 - r0)].reshape(n_lv, r1 - r0, *btf.shape[2:])
+        read_whole_chunks(btf, r0, r1, out)
+        return out
+
+    def block(r0: int, r1: int, slot: int | None) -> np.ndarray:
+        raw = band(r0, r1, slot)
         if linear:
-            return band.reshape(n_lv, -1)
-        x = to_log_yuv(band)
+            return raw.reshape(n_lv, -1)
+        x = to_log_yuv(raw)
         if basis == "abtf_log_y":
             return patch_matrix(x[..., 0], patch, overlap=False)
         return np.ascontiguousarray(x[..., CHANNELS.index(basis)].reshape(n_lv, -1))
 
-    bands = _bands(btf, multiple, max_bytes)
     # read (and convert) the next band while the caller computes on this one, where two bands fit
     band_bytes = 4 * n_lv * max((r1 - r0 for r0, r1 in bands), default=0) * int(np.prod(btf.shape[2:]))
     ahead = max_bytes is None or 2 * band_bytes <= max_bytes
+    n_slots = 2 if ahead else 1
 
-    def read() -> Iterator[np.ndarray]:
+    def read(reuse: bool = transient) -> Iterator[np.ndarray]:
+        slot = (lambda i: i % n_slots) if reuse else (lambda i: None)
         if not ahead:
-            yield from (block(r0, r1) for r0, r1 in bands)
+            yield from (block(r0, r1, slot(i)) for i, (r0, r1) in enumerate(bands))
             return
         with ThreadPoolExecutor(1, thread_name_prefix="btf-read-ahead") as pool:
-            pending = pool.submit(block, *bands[0]) if bands else None
+            pending = pool.submit(block, *bands[0], slot(0)) if bands else None
             for i in range(len(bands)):
                 current = pending.result()
-                pending = pool.submit(block, *bands[i + 1]) if i + 1 < len(bands) else None
+                pending = pool.submit(block, *bands[i + 1], slot(i + 1)) if i + 1 < len(bands) else None
                 yield current
 
     return cached if keep else read
@@ -468,7 +487,8 @@ def _fit_basis(material: Material, basis: str, settings: ModelSettings) -> Trunc
         return _fit_als(material, k, settings)
 
     def fit(k: int) -> TruncatedSVD:
-        return truncated_svd(blocks(material.path, basis, settings.patch, band_budget(settings)), rows, k,
+        return truncated_svd(blocks(material.path, basis, settings.patch, band_budget(settings), transient=True),
+                             rows, k,
                              settings.method,
                              memory_bytes=settings.memory_bytes, seed=settings.seed,
                              rows_id=f"{material.rows_id}/{basis}")
@@ -513,11 +533,12 @@ def _fit_als(material: Material, c: int, settings: ModelSettings) -> TruncatedSV
     """The relative-error ALS basis (paper 4 eqs. 5-8) of a material's linear RGB BTF, streamed in texel
     bands (:func:`btfcore.model.als.als_basis` on a block source): one pass estimates the weight floor, then
     one pass per iteration; ``norm_sq`` is accumulated by btfcore in the first of them."""
-    bands = blocks(material.path, "als", max_bytes=band_budget(settings))
+    bands = blocks(material.path, "als", max_bytes=band_budget(settings), transient=True)
 
     def clipped() -> Iterator[np.ndarray]:
-        for band in bands():
-            yield np.maximum(band.astype(np.float32, copy=False), 0.0)   # radiance: noise below 0 carries no signal
+        for band in bands():                    # radiance: noise below 0 carries no signal (in the reused buffer)
+            yield np.maximum(band, 0.0, out=band) if band.dtype == np.float32 else \
+                np.maximum(band, 0.0).astype(np.float32)
 
     res = als_basis(clipped, c, n_iter=settings.als_iterations, seed=settings.seed,
                     chunk_bytes=work_budget(settings.memory_bytes))
@@ -598,7 +619,7 @@ def projection_errors(path: str, U: np.ndarray, basis: str = "log_y", patch: int
     (k_max,) ndarray: entry ``k - 1`` is :math:`\\varepsilon_k`.
     """
     total, captured = 0.0, np.zeros(U.shape[1])
-    for block in blocks(path, basis, patch, max_bytes)():
+    for block in blocks(path, basis, patch, max_bytes, transient=True)():
         b = block.astype(np.float64)
         total += float(np.sum(b * b))
         captured += np.sum((U.T @ b) ** 2, axis=1)

@@ -141,6 +141,9 @@ def block_power_iteration(
         if it == 1:                                                 # the blocks are the same every pass
             check_k(k, n_lv, n_cols)
             norm_sq = pass_norm_sq
+        if tol is None and it < max_iter - 1:                       # a fixed pass count: the result's change needs
+            C = orthonormalise(S)                                   # only the last two passes' Ritz bases
+            continue
         V, sigma = ritz(C, C.T @ S)                                 # T = sum_j X_j X_j^T = C^T S; Rayleigh-Ritz
         # compare only the Ritz vectors above the rank threshold: beyond the rank they are arbitrary
         kk = min(k, int(np.count_nonzero(sigma > rank_rtol * sigma[0]))) if sigma[0] > 0 else 0

@@ -230,3 +230,49 @@ def test_validate_opens_other_store_kinds(tmp_path, capsys):
     assert code == 0 and out == f"{tmp_path / 'm.zarr'}: valid\n", out     # schema-checked (validate_deep)
     code, out = validate(capsys, tmp_path / "nothing.zarr", "--deep")
     assert code == EXIT_BAD_INPUT and "nothing at" in out, out
+
+
+def _banded(path: Path) -> zarr.Array:
+    """A btf-like array: 3 x 4 light/view chunks of 4 texture rows (the last of 2, padded), whole rows."""
+    data = np.random.default_rng(8).uniform(0, 1, (12, 10, 5, 3)).astype(np.float32)
+    group = zarr.open_group(str(path), mode="w", zarr_format=3)
+    array = create_array(group, "btf", shape=data.shape, chunks=(4, 4, 5, 3), dtype="float32", fill_value=0.0)
+    array[...] = data
+    return array
+
+
+def _reads(monkeypatch) -> list:
+    """Counts the reads that go through Zarr (the fallback) rather than straight from the chunk files."""
+    calls: list = []
+    original = zarr.Array.get_basic_selection
+    monkeypatch.setattr(zarr.Array, "get_basic_selection",
+                        lambda self, *a, **k: calls.append(a) or original(self, *a, **k))
+    return calls
+
+
+def test_whole_chunks_are_read_straight_into_the_band_and_anything_else_through_zarr(tmp_path, monkeypatch):
+    array = _banded(tmp_path / "b.zarr")
+    calls = _reads(monkeypatch)
+    for start, stop, straight in ((0, 4, True), (4, 8, True), (8, 10, False), (1, 5, False), (0, 2, False)):
+        out = np.full((12, stop - start, 5, 3), np.nan, np.float32)
+        before = len(calls)
+        integrity.read_whole_chunks(array, start, stop, out)
+        np.testing.assert_array_equal(out, array[:, start:stop])
+        assert (len(calls) == before) == straight, (start, stop)          # no read through Zarr: straight
+
+
+def test_a_damaged_or_missing_chunk_in_a_whole_band_is_left_to_zarr(tmp_path, chunk_files):
+    """A flipped byte or a cut file is named as any read names it; a missing chunk reads as fill values."""
+    path = tmp_path / "b.zarr"
+    array = _banded(path)
+    out = np.empty((12, 4, 5, 3), np.float32)
+    chunk_files.flip_byte(chunk_files.path(path, "btf", (1, 1, 0, 0)), offset=10)
+    with pytest.raises(CorruptChunkError, match=r"array btf, chunk \(1, 1, 0, 0\): checksum mismatch"):
+        integrity.read_whole_chunks(array, 4, 8, out)
+    cut = chunk_files.path(path, "btf", (2, 0, 0, 0))
+    cut.write_bytes(cut.read_bytes()[:50])
+    with pytest.raises(CorruptChunkError, match=r"array btf, chunk \(2, 0, 0, 0\): truncated"):
+        integrity.read_whole_chunks(array, 0, 4, out)
+    cut.unlink()
+    integrity.read_whole_chunks(array, 0, 4, out)
+    assert not out[8:].any() and out[:8].all()

@@ -82,6 +82,31 @@ def test_blocks_under_a_byte_bound_hold_the_same_columns(tmp_path):
         np.testing.assert_array_equal(np.sort(np.concatenate(small, axis=1), axis=1), np.sort(whole, axis=1))
 
 
+def test_transient_blocks_reuse_their_buffers_and_hold_the_same_values(tmp_path):
+    """A fit's source (``transient=True``) reads every band into one of two buffers it keeps (one where
+    only one band fits the bound), so a later pass allocates no band; consumed one block at a time it
+    gives the blocks of a plain source."""
+    btf = np.random.default_rng(5).uniform(0.1, 1, (12, 20, 16, 3)).astype(np.float32)
+    path = _store(tmp_path / "m.zarr", btf, 8)
+    one_band = 4 * 12 * 8 * 16 * 3
+    for basis in ("als", "log_y"):
+        plain = list(blocks(path, basis)())
+        for max_bytes, n_buffers in ((None, 2), (one_band, 1)):
+            source = blocks(path, basis, max_bytes=max_bytes, transient=True)
+            seen, values = [], []
+            for b in source():
+                seen.append(b)
+                values.append(b.copy())
+            assert len(values) == len(plain) == 3
+            for a, b in zip(values, plain):
+                np.testing.assert_array_equal(a, b)
+            if basis == "als":                                   # the blocks are views of the buffers
+                buffers = seen[:n_buffers]
+                assert not any(np.shares_memory(a, b) for i, a in enumerate(buffers) for b in buffers[i + 1:])
+                for b in [*seen, *source()]:
+                    assert sum(np.shares_memory(b, buffer) for buffer in buffers) == 1
+
+
 def test_reading_ahead_yields_the_same_blocks_in_the_same_order(tmp_path):
     """Without a bound (or where two bands fit it) the next band is read in a thread while the caller
     computes; with one band's bytes as the bound the same bands are read in turn."""
