@@ -248,10 +248,11 @@ def blocks(path: str, basis: str, patch: int = 3, max_bytes: int | None = None, 
     passes of a fit would otherwise each re-read and re-convert it).
 
     ``transient=True`` (a consumer that is done with a block when it asks for the next, as the fits
-    are): the bands are read into two buffers the source keeps and reuses, so a yielded block is valid
-    only until the next one is requested, and may be changed in place. A freshly allocated band costs
-    its page faults on every read: 0.9-1.4 s against 0.25 s into a reused buffer for a 522 MB band
-    (docs/benchmarks.md, 2026-12-05).
+    are): the bands of ``als`` and ``rgb_svd`` are read into two buffers the source keeps and reuses
+    (one where only one band fits ``max_bytes``), so a yielded block is valid only until the next one
+    is requested, and may be changed in place. A freshly allocated band costs its page faults on every
+    read: 0.9-1.4 s against 0.25 s into a reused buffer for a 522 MB band (docs/benchmarks.md,
+    2026-12-05). The other bases' blocks are converted into new arrays either way.
     """
     btf = zarr.open_group(path, mode="r", zarr_format=3)["btf"]
     n_lv = btf.shape[0]
@@ -292,7 +293,9 @@ def blocks(path: str, basis: str, patch: int = 3, max_bytes: int | None = None, 
     n_slots = 2 if ahead else 1
 
     def read(reuse: bool = transient) -> Iterator[np.ndarray]:
-        slot = (lambda i: i % n_slots) if reuse else (lambda i: None)
+        # only a linear band is the block itself; another basis' block is converted into new arrays, and
+        # a kept raw band would add to the memory its conversion takes
+        slot = (lambda i: i % n_slots) if reuse and linear else (lambda i: None)
         if not ahead:
             yield from (block(r0, r1, slot(i)) for i, (r0, r1) in enumerate(bands))
             return
