@@ -597,10 +597,13 @@ class _Streamed:
         self.V = None
 
     def v_pass(self, sweep: _Sweep, it: int) -> None:
-        """One :class:`_Sweep` over the blocks; the first pass also counts the columns and checks ``c``."""
+        """One :class:`_Sweep` over the blocks; the first pass also counts the columns, checks ``c`` and takes
+        the norm and the NaN/Inf test (a float64 pass over every block: 1.5 s of a 5.1 GB matrix's pass,
+        which later passes over the same blocks need not repeat)."""
         ops, dt = self.ops, self.ops.dtype
         pass_norm_sq, cols = for_each_block(
-            self.source, self.n_lv, lambda b: sweep.block(ops.asarray(b.astype(dt, copy=False))), self.n_tx)
+            self.source, self.n_lv, lambda b: sweep.block(ops.asarray(b.astype(dt, copy=False))), self.n_tx,
+            norm=it == 0)
         if it == 0:
             self.norm_sq, self.n_tx = pass_norm_sq, cols
             _check_c(self.c, self.n_lv, self.n_tx)
