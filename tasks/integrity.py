@@ -59,7 +59,7 @@ __all__ = [
     "missing_problem",
     "nonfinite_problem",
     "open_any_store",
-    "read_whole_chunks",
+    "read_chunk_rows",
     "rerun_hint",
     "store_kind",
     "stored_chunks",
@@ -377,35 +377,40 @@ def chunk_files_exist(array: zarr.Array, chunks: Sequence[tuple[int, ...]]) -> l
     return sync(exist())
 
 
-def read_whole_chunks(array: zarr.Array, start: int, stop: int, out: np.ndarray) -> None:
+def read_chunk_rows(array: zarr.Array, start: int, stop: int, out: np.ndarray) -> None:
     """``out[...] = array[:, start:stop]`` for an array chunked along its first two axes only.
 
-    Where the rows ``start:stop`` are exactly one chunk's (not the padded edge chunk), the array is
-    uncompressed with a CRC32C checksum on a local store (what :func:`create_array` makes) and every
-    chunk file has its exact size, each chunk file is read straight into its part of ``out`` (C
-    contiguous) and its checksum verified there: one copy, where Zarr reads a chunk into bytes and
-    copies it into ``out`` again (0.18-0.22 s against 0.49-0.51 s for a 522 MB band of 132 chunks,
-    docs/benchmarks.md 2026-12-05). Anything else, a missing chunk or a checksum that does not match
-    included, is read through Zarr, which returns fill values or raises :class:`CorruptChunkError`
-    naming the chunk, as every other read does.
+    Where the rows ``start:stop`` lie in one chunk row, the array is uncompressed with a CRC32C checksum
+    on a local store (what :func:`create_array` makes) and every chunk file has its exact size, each
+    chunk file is read and its checksum verified without Zarr: straight into its part of ``out`` (C
+    contiguous) where the rows are the whole chunk's, else into a scratch buffer whose rows are copied
+    out (a band split into sub-bands by a fit's memory budget; the edge chunk, stored padded). One copy
+    of a whole chunk where Zarr makes two and allocates a new buffer per chunk: 0.18-0.22 s against
+    0.49-0.51 s for a 522 MB band of 132 chunks (docs/benchmarks.md 2026-12-05). Anything else, a
+    missing chunk or a checksum that does not match included, is read through Zarr, which returns fill
+    values or raises :class:`CorruptChunkError` naming the chunk, as every other read does.
     """
     import google_crc32c
 
     shape, chunks = array.shape, array.chunks
     local = _local_root(array)
+    n_groups = shape[0] // chunks[0]
     fast = (local is not None and out.flags.c_contiguous and out.shape == (shape[0], stop - start, *shape[2:])
-            and start % chunks[1] == 0 and stop - start == chunks[1] and stop <= shape[1]
+            and 0 <= start < stop <= shape[1] and start // chunks[1] == (stop - 1) // chunks[1]
             and tuple(chunks[2:]) == tuple(shape[2:]) and shape[0] % chunks[0] == 0
             and not array.filters and len(array.compressors) == 1 and has_checksums(array)
             and getattr(array.serializer, "endian", None) is not None and array.serializer.endian.value == "little"
             and out.dtype == _native_dtype(array.dtype) and out.dtype.byteorder in ("=", "<", "|"))
     if fast:
+        row, first = divmod(start, chunks[1])
+        whole = first == 0 and stop - start == chunks[1]
+        size = int(np.prod(chunks)) * out.dtype.itemsize                   # bytes of one chunk
         flat = out.reshape(-1).view(np.uint8)
-        size = flat.size // (shape[0] // chunks[0])                     # bytes of one chunk
+        scratch = None if whole else np.empty(size, np.uint8)
         rest = (0,) * (len(shape) - 2)
-        for i in range(shape[0] // chunks[0]):
-            key = array.metadata.encode_chunk_key((i, start // chunks[1], *rest))
-            part = flat[i * size:(i + 1) * size]
+        for i in range(n_groups):
+            key = array.metadata.encode_chunk_key((i, row, *rest))
+            part = flat[i * size:(i + 1) * size] if whole else scratch
             try:
                 with open(os.path.join(local, *key.split("/")), "rb", buffering=0) as f:
                     if os.fstat(f.fileno()).st_size != size + 4 or f.readinto(memoryview(part)) != size:
@@ -415,6 +420,9 @@ def read_whole_chunks(array: zarr.Array, start: int, stop: int, out: np.ndarray)
                 break
             if google_crc32c.value(part) != stored:
                 break
+            if not whole:
+                chunk = part.view(out.dtype).reshape(chunks)
+                out[i * chunks[0]:(i + 1) * chunks[0]] = chunk[:, first:first + stop - start]
         else:
             return
     array.get_basic_selection((slice(None), slice(start, stop)),

@@ -52,7 +52,7 @@ from btfcore.model.eigenspace_merging import merge_eigenspaces
 from btfcore.model.truncated_svd import truncated_svd
 from tasks.compute import run_all
 from tasks.faults import kill_point
-from tasks.integrity import create_array, read_whole_chunks
+from tasks.integrity import create_array, read_chunk_rows
 from tasks.staging import (
     begin_store,
     commit_staged,
@@ -275,7 +275,7 @@ def blocks(path: str, basis: str, patch: int = 3, max_bytes: int | None = None, 
         if not slots:                                   # one per band in flight: two when reading ahead
             slots.extend(np.empty(row_size * max(b1 - b0 for b0, b1 in bands), btf.dtype) for _ in range(n_slots))
         out = slots[slot][:row_size * (r1 - r0)].reshape(n_lv, r1 - r0, *btf.shape[2:])
-        read_whole_chunks(btf, r0, r1, out)
+        read_chunk_rows(btf, r0, r1, out)
         return out
 
     def block(r0: int, r1: int, slot: int | None) -> np.ndarray:

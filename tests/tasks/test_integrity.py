@@ -250,13 +250,16 @@ def _reads(monkeypatch) -> list:
     return calls
 
 
-def test_whole_chunks_are_read_straight_into_the_band_and_anything_else_through_zarr(tmp_path, monkeypatch):
+def test_rows_within_one_chunk_row_are_read_without_zarr_and_across_chunk_rows_through_it(tmp_path, monkeypatch):
+    """Whole chunks straight into the band, sub-bands and the padded edge chunk through a scratch buffer;
+    rows that cross a chunk row through Zarr."""
     array = _banded(tmp_path / "b.zarr")
     calls = _reads(monkeypatch)
-    for start, stop, straight in ((0, 4, True), (4, 8, True), (8, 10, False), (1, 5, False), (0, 2, False)):
+    for start, stop, straight in ((0, 4, True), (4, 8, True), (8, 10, True), (0, 2, True), (5, 6, True),
+                                  (9, 10, True), (1, 5, False), (3, 9, False)):
         out = np.full((12, stop - start, 5, 3), np.nan, np.float32)
         before = len(calls)
-        integrity.read_whole_chunks(array, start, stop, out)
+        integrity.read_chunk_rows(array, start, stop, out)
         np.testing.assert_array_equal(out, array[:, start:stop])
         assert (len(calls) == before) == straight, (start, stop)          # no read through Zarr: straight
 
@@ -268,11 +271,16 @@ def test_a_damaged_or_missing_chunk_in_a_whole_band_is_left_to_zarr(tmp_path, ch
     out = np.empty((12, 4, 5, 3), np.float32)
     chunk_files.flip_byte(chunk_files.path(path, "btf", (1, 1, 0, 0)), offset=10)
     with pytest.raises(CorruptChunkError, match=r"array btf, chunk \(1, 1, 0, 0\): checksum mismatch"):
-        integrity.read_whole_chunks(array, 4, 8, out)
+        integrity.read_chunk_rows(array, 4, 8, out)
     cut = chunk_files.path(path, "btf", (2, 0, 0, 0))
     cut.write_bytes(cut.read_bytes()[:50])
     with pytest.raises(CorruptChunkError, match=r"array btf, chunk \(2, 0, 0, 0\): truncated"):
-        integrity.read_whole_chunks(array, 0, 4, out)
+        integrity.read_chunk_rows(array, 0, 4, out)
     cut.unlink()
-    integrity.read_whole_chunks(array, 0, 4, out)
+    integrity.read_chunk_rows(array, 0, 4, out)
     assert not out[8:].any() and out[:8].all()
+    sub = np.empty((12, 2, 5, 3), np.float32)                       # the same within a chunk row
+    with pytest.raises(CorruptChunkError, match=r"array btf, chunk \(1, 1, 0, 0\): checksum mismatch"):
+        integrity.read_chunk_rows(array, 5, 7, sub)
+    integrity.read_chunk_rows(array, 1, 3, sub)
+    assert not sub[8:].any() and sub[:8].all()
