@@ -303,6 +303,10 @@ def start_cluster(profile: Profile, environ: dict[str, str]) -> Any:
                 os.environ[key] = value
 
 
+#: Seconds between the tries of :func:`_connect` to set up the workers of a running scheduler.
+CONNECT_RETRY_S = 1.0
+
+
 def _connect(profile: Profile, environ: dict[str, str]) -> Any:
     """A client of the running scheduler of an ``address`` profile, once it has a worker; one warning line
     on stderr when its workers lack part of ``environ`` (their owner starts them with it: docs/clusters.md)."""
@@ -317,14 +321,22 @@ def _connect(profile: Profile, environ: dict[str, str]) -> Any:
         client = Client(address, security=security_of(profile.cluster), timeout=f"{timeout}s")
     except Exception as exc:
         raise RuntimeUnavailable(f"could not connect to the Dask scheduler {address} of {profile.path}: {exc}") from exc
-    try:
-        client.wait_for_workers(1, timeout=timeout)
-        client.register_plugin(WorkerSetup(environ), name="btf-worker-setup")
-        lacking = sorted({item for items in client.run(environ_differences, environ).values() for item in items})
-    except Exception as exc:
-        client.close()
-        raise RuntimeUnavailable(f"the Dask scheduler {address} of {profile.path} has no usable worker within "
-                                 f"{timeout:.0f} s: {exc}") from exc
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            client.wait_for_workers(1, timeout=max(deadline - time.monotonic(), 0.1))
+            client.register_plugin(WorkerSetup(environ), name="btf-worker-setup")
+            lacking = sorted({item for items in client.run(environ_differences, environ).values() for item in items})
+            break
+        except Exception as exc:
+            # a worker that left while this client set the workers up (its connection closed: an OSError) is no
+            # reason to fail while others may be there: try again until the profile's timeout
+            if isinstance(exc, OSError) and time.monotonic() < deadline - CONNECT_RETRY_S:
+                time.sleep(CONNECT_RETRY_S)
+                continue
+            client.close()
+            raise RuntimeUnavailable(f"the Dask scheduler {address} of {profile.path} has no usable worker within "
+                                     f"{timeout:.0f} s: {exc}") from exc
     if lacking:
         print(f"btf: warning: the workers of {address} did not start with {' '.join(lacking)}; btf set the thread "
               "counts and Prefect settings in them, but not the memory settings: start them with that environment "

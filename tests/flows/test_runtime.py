@@ -219,3 +219,46 @@ def test_a_slurm_job_script_exports_the_worker_environment_before_the_worker_sta
     prologue = lines.index("module load python/3.11")
     assert prologue < lines.index("export OMP_NUM_THREADS=1") < start      # after the user's lines, before the worker
     assert "--nthreads 1 " in lines[start] and "--nworkers 2 " in lines[start] and "--interface lo" in lines[start]
+
+
+def _address_profile(tmp_path, client, timeout_s: float):
+    from flows.profiles import load_profile
+
+    path = tmp_path / "address.yaml"
+    path.write_text(f"cluster: {{kind: address, address: '{client.scheduler.address}', timeout_s: {timeout_s}}}\n")
+    return load_profile(path)
+
+
+def test_connecting_to_a_scheduler_retries_when_a_worker_leaves_during_the_setup(runtime_session, tmp_path,
+                                                                                   monkeypatch):
+    """A worker that leaves while ``btf`` sets the workers up (the scheduler's broadcast meets its closed
+    connection: seen in the kill matrix right after a worker was replaced) used to fail the run at once with
+    "has no usable worker"; it is tried again within the profile's timeout. The leaving worker is injected
+    (CommClosedError on the first broadcast): the race itself cannot be caused on demand."""
+    from distributed import Client
+    from distributed.comm.core import CommClosedError
+
+    from flows.runtime import RuntimeUnavailable, _connect, worker_environ
+
+    _, url, client = runtime_session
+    original, calls = Client.register_plugin, []
+
+    def leaving_once(self, *args, **kwargs):
+        calls.append(1)
+        if len(calls) == 1:
+            raise CommClosedError("in <TCP (closed) Scheduler Broadcast>: Stream is closed")
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(Client, "register_plugin", leaving_once)
+    connected = _connect(_address_profile(tmp_path, client, 20), worker_environ(url))
+    try:
+        assert len(calls) == 2 and len(connected.scheduler_info()["workers"]) >= 1
+    finally:
+        connected.close()
+
+    def always(self, *args, **kwargs):
+        raise CommClosedError("in <TCP (closed) Scheduler Broadcast>: Stream is closed")
+
+    monkeypatch.setattr(Client, "register_plugin", always)
+    with pytest.raises(RuntimeUnavailable, match=r"has no usable worker within 3 s: .*Stream is closed"):
+        _connect(_address_profile(tmp_path, client, 3), worker_environ(url))
