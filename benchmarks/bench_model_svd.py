@@ -21,11 +21,12 @@ fastest in-memory run under 3e-4 in the same run (issue 21).
 Contenders, all timed in this run on the same store:
 
 * ours: :func:`btfcore.model.truncated_svd.truncated_svd` (``method='randomized'``,
-  QR every pass) streaming the texel bands of the store through
-  ``tasks.model.blocks(store, 'als')`` (linear values, one block per band),
+  re-orthonormalised every pass, ending in the Nyström step) streaming the texel bands of the store
+  through ``tasks.model.blocks(store, 'als', transient=True)`` (linear values, one block per band,
+  as a fit reads them but without a band budget),
   in this process with numpy's default BLAS threads (all cores); one run
   per ``--configs`` entry ``n_iter:oversample`` or ``default`` (the
-  library's own settings, n_iter 3 and oversample max(10, k // 4)). Flops per pass
+  library's own settings, n_iter 3 and oversample max(10, k // 2)). Flops per pass
   ``4 n_lv n_tx l`` (``X = C^T B_j`` and ``S += B_j X^T``), ``l = k +
   oversample``, ``n_iter + 1`` passes (as the result reports); achieved GFLOP/s = flops / wall time,
   and its ratio to the GEMM rate;
@@ -173,7 +174,7 @@ def _parse_args() -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--configs", default="default,2:128,3:128,4:128,6:128",
                         help="our runs as n_iter:oversample or 'default' (truncated_svd's own: n_iter 3, "
-                             "oversample max(10, k // 4)), comma-separated [default: default, then n_iter 2, 3, "
+                             "oversample max(10, k // 2)), comma-separated [default: default, then n_iter 2, 3, "
                              "4, 6 at oversample 128]")
     parser.add_argument("--peer-config", default="3:128",
                         help="n_power_iter:n_oversamples given to the peers beside their defaults [default: 3:128]")
