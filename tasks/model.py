@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import mmap
 import os
 import shutil
 from collections.abc import Callable, Iterator, Sequence
@@ -233,6 +234,21 @@ def _bands(btf: zarr.Array, multiple: int = 1, max_bytes: int | None = None) -> 
             for s in range(r, min(r + step, usable), sub)]
 
 
+def prefaulted(n: int, dtype: Any) -> np.ndarray:
+    """An uninitialised ``(n,)`` array whose pages are all mapped at once (Linux ``MAP_POPULATE``), for a
+    large buffer that is filled and reused: ``numpy.empty`` asks the kernel for huge pages
+    (``madvise``), whose first touch, with the kernel's ``defrag`` setting at ``madvise``, can wait for
+    memory compaction: 1.07 s against 0.16-0.22 s for 522 MB on the 2-core VM (docs/benchmarks.md,
+    2026-12-05), with the same GEMM rate on either. Workers already turn the hint off
+    (``NUMPY_MADVISE_HUGEPAGE=0``, docs/architecture.md, "Pitfalls"); this covers a fit in any other
+    process too. Elsewhere, ``numpy.empty``. The memory is given back when the array is freed."""
+    populate = getattr(mmap, "MAP_POPULATE", 0)
+    nbytes = n * np.dtype(dtype).itemsize
+    if not populate or nbytes == 0:
+        return np.empty(n, dtype)
+    return np.frombuffer(mmap.mmap(-1, nbytes, flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS | populate), dtype, n)
+
+
 def blocks(path: str, basis: str, patch: int = 3, max_bytes: int | None = None, *, transient: bool = False
            ) -> Callable[[], Iterator[np.ndarray]]:
     """A re-iterable source of ``(rows, m_j)`` column blocks of one basis' matrix of a material,
@@ -273,7 +289,7 @@ def blocks(path: str, basis: str, patch: int = 3, max_bytes: int | None = None, 
         if slot is None:
             return np.asarray(btf[:, r0:r1])                                  # (n_lv, rows, w, 3)
         if not slots:                                   # one per band in flight: two when reading ahead
-            slots.extend(np.empty(row_size * max(b1 - b0 for b0, b1 in bands), btf.dtype) for _ in range(n_slots))
+            slots.extend(prefaulted(row_size * max(b1 - b0 for b0, b1 in bands), btf.dtype) for _ in range(n_slots))
         out = slots[slot][:row_size * (r1 - r0)].reshape(n_lv, r1 - r0, *btf.shape[2:])
         read_chunk_rows(btf, r0, r1, out)
         return out

@@ -179,14 +179,15 @@ def for_each_block(
 
     A NaN/Inf raises a ValueError naming the block, its index and B's column.
     ``n_cols`` (from an earlier pass) must match this pass' column count. ``norm=False`` (a later pass
-    over blocks an earlier one validated) skips the norm and the NaN/Inf test, a float64 pass over
-    every block, and returns NaN for the norm.
+    over blocks an earlier one validated) skips the norm and the NaN/Inf test and returns NaN for the norm.
+
+    The norm is summed per row in the block's dtype and over rows in float64 (:func:`squared_norm`).
     """
     norm_sq, col = (0.0 if norm else float("nan")), 0
     for j, raw in enumerate(source()):
         b = _as_block(raw, j, n_lv)
         if norm:
-            e = float(np.einsum("ij,ij->", b, b, dtype=np.float64))    # float64: ||B||^2 - sum sigma^2 cancels
+            e = squared_norm(b)
             if not np.isfinite(e):
                 check_finite(b, f"blocks[{j}]", col)
                 raise ValueError(f"blocks[{j}] is too large: its squared norm overflows float64")
@@ -199,6 +200,22 @@ def for_each_block(
             + ": the source must return a fresh iterator over the same non-empty blocks on every call"
         )
     return norm_sq, col
+
+
+def squared_norm(b: np.ndarray) -> float:
+    """:math:`\\|b\\|_F^2` of a float32 or float64 ``(n, m)`` block: row sums in its dtype, their sum in float64.
+
+    Float32 row sums of a 26,136 x 4,992 Gaussian band were 2.5e-8 off the float64 sum (bound: ``m``
+    times float32's epsilon); even where the basis captures 99.99 % of the energy, that moves the
+    residual :math:`\\|B\\|^2 - \\sum \\sigma^2` by 2.5e-4 of itself. Converting the band to float64
+    took 1.22 s instead of 0.27 s (docs/benchmarks.md, 2026-12-05). A row that overflows float32
+    (entries above 1.8e19) is summed again in float64, so only a float64 overflow or a NaN/Inf gives a
+    non-finite result.
+    """
+    rows = np.einsum("ij,ij->i", b, b)
+    if not np.all(np.isfinite(rows)) and b.dtype != np.float64:
+        rows = np.einsum("ij,ij->i", b, b, dtype=np.float64)
+    return float(rows.sum(dtype=np.float64))
 
 
 # --------------------------------------------------------------------------- small dense steps
@@ -242,7 +259,7 @@ def largest_angle(U: np.ndarray, V: np.ndarray) -> float:
     return float(np.arccos(min(float(c[-1]), 1.0)))
 
 
-def nystrom(C: np.ndarray, S: np.ndarray, eps: float) -> tuple[np.ndarray, np.ndarray]:
+def nystrom(C: np.ndarray, S: np.ndarray, eps: float, k: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Eigenpairs of the Nyström approximation of :math:`G = B B^T` from ``C`` and ``S = G C``.
 
     With ``C`` ``(n, l)`` orthonormal, :math:`\\hat G = S (C^T S)^{-1} S^T` (Halko et al. 2011, §5.4) is
@@ -258,10 +275,17 @@ def nystrom(C: np.ndarray, S: np.ndarray, eps: float) -> tuple[np.ndarray, np.nd
     the rounding level are damped instead of amplified. Falls back to :func:`ritz` if the Cholesky
     factorisation fails anyway.
 
+    The leading ``k`` eigenvectors are :math:`E W_k \\Lambda_k^{-1/2}` from the eigenpairs of the small
+    :math:`E^T E` (``E`` as in the code): 0.25 s against 0.82 s for LAPACK's SVD of a 26,136 x 416 ``E``
+    on 2 cores. Its orthogonality error grows like :math:`\\epsilon \\lambda_1 / \\lambda_k`, so the
+    result is checked (:math:`\\|U_k^T U_k - I\\|_{max} \\le 10^{-10}`, as :func:`orthonormalise` is)
+    and the SVD of ``E`` used where the check fails (a spectrum steeper than 1e-6 at ``k``).
+
     Returns
     -------
-    U : (n, l) ndarray
-        Eigenvectors of :math:`\\hat G`, decreasing.
+    U : (n, k) ndarray
+        Eigenvectors of :math:`\\hat G`, decreasing (all ``l`` where ``k`` is None, and after the
+        fallback to :func:`ritz`).
     sigma : (l,) ndarray
         :math:`\\sqrt{\\lambda}` of its eigenvalues, decreasing.
     """
@@ -273,8 +297,15 @@ def nystrom(C: np.ndarray, S: np.ndarray, eps: float) -> tuple[np.ndarray, np.nd
     except np.linalg.LinAlgError:
         return ritz(C, C.T @ S)
     E = linalg.solve_triangular(L, Y.T, lower=True).T              # Y L^-T: E E^T = Y (C^T Y)^-1 Y^T
+    kk = E.shape[1] if k is None else min(k, E.shape[1])
+    lam, W = linalg.eigh(E.T @ E)                                  # E = U diag(sqrt(lam)) W^T
+    lam, W = lam[::-1], W[:, ::-1]
+    if lam[kk - 1] > 0:
+        U = E @ (W[:, :kk] / np.sqrt(lam[:kk]))
+        if np.abs(U.T @ U - np.eye(kk)).max() <= 1e-10:
+            return U, np.sqrt(np.maximum(lam - nu, 0.0))
     U, s, _ = np.linalg.svd(E, full_matrices=False)
-    return U, np.sqrt(np.maximum(s ** 2 - nu, 0.0))
+    return U[:, :kk], np.sqrt(np.maximum(s ** 2 - nu, 0.0))
 
 
 def ritz(Q: np.ndarray, H: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

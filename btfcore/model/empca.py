@@ -79,7 +79,8 @@ def block_power_iteration(
         E itself it would stop far too early on data whose basis captures
         99.99% of the energy, as BTFs do).
     seed : int
-        Seed of the Gaussian start ``C``.
+        Seed of the Gaussian start: ``C`` ``(n_lv, n_basis)``, or, with ``tol=None`` and
+        ``max_iter > 1``, :math:`\\Omega` ``(n_tx, n_basis)`` (see Notes).
     rank_rtol : float
         Singular values at or below ``rank_rtol * sigma_1`` count as zero.
     final : {'ritz', 'nystrom'}
@@ -119,29 +120,47 @@ def block_power_iteration(
     is below ``n_basis``); re-orthonormalising every pass keeps float32
     products accurate (docs/architecture.md, "Pitfalls"). At convergence the result is the Ritz
     basis of the last pass' C.
+
+    A fixed pass count (``tol=None``, ``max_iter > 1``) starts as Halko et al.'s Alg. 4.4 does:
+    pass 1 forms :math:`S = B \\Omega = \\sum_j B_j \\Omega_j` (one product; the rows of the Gaussian
+    :math:`\\Omega` are drawn block by block in column order, which gives the same :math:`\\Omega`
+    however the columns are blocked) and has no Ritz step. Started from ``C`` instead, pass 1 costs
+    two products for the one power of :math:`B B^T` that the later passes add anyway: at the thesis'
+    scale q = 3 then took 50-52 s where this start takes 46.5 s at the same accuracy with 5 k // 8
+    oversampling (docs/benchmarks.md, 2026-12-05 09:17).
     """
     if criterion not in CRITERIA:
         raise ValueError(f"criterion must be one of {CRITERIA}, got {criterion!r}")
     if final not in FINAL_STEPS or (final == "nystrom" and tol is not None):
         raise ValueError(f"final must be one of {FINAL_STEPS} ('nystrom' with tol=None), got {final!r}")
     eps = float(np.finfo(np.float64).eps)                         # of the products: float32 if a block is
-    C = orthonormalise(np.random.default_rng(seed).standard_normal((n_lv, n_basis)))
+    rng = np.random.default_rng(seed)
+    # a fixed pass count that has a later pass starts from S = B Omega (one product), else from C
+    C = None if tol is None and max_iter > 1 else orthonormalise(rng.standard_normal((n_lv, n_basis)))
     n_cols, prev, change, it = None, None, np.inf, 0
-    for it in range(1, max_iter + 1):
-        S = np.zeros((n_lv, n_basis))
-        cast = {np.dtype(np.float64): C, np.dtype(np.float32): C.astype(np.float32)}
+    S = np.empty((n_lv, n_basis))
+    products: dict[np.dtype, np.ndarray] = {}                       # B_j X_j^T, one reused buffer per dtype: a
+    for it in range(1, max_iter + 1):                               # fresh one per block costs its page faults
+        S[...] = 0.0
+        cast = {} if C is None else {np.dtype(np.float64): C, np.dtype(np.float32): C.astype(np.float32)}
 
         def visit(b: np.ndarray) -> None:
             nonlocal eps
             eps = max(eps, float(np.finfo(b.dtype).eps))
-            X = cast[b.dtype].T @ b                                 # E-step X_j = (C^T C)^-1 C^T B_j  (Roweis §3)
-            S[...] += b @ X.T                                       # M-step numerator sum_j B_j X_j^T
+            out = products.get(b.dtype)
+            if out is None:
+                out = products[b.dtype] = np.empty((n_lv, n_basis), b.dtype)
+            if C is None:                                           # Omega_j: the rows of a Gaussian (n_tx, l) for
+                X_T = rng.standard_normal((b.shape[1], n_basis), dtype=b.dtype)    # B_j's columns, in order
+            else:
+                X_T = (cast[b.dtype].T @ b).T                       # E-step X_j = (C^T C)^-1 C^T B_j  (Roweis §3)
+            S[...] += np.matmul(b, X_T, out=out)                    # M-step numerator sum_j B_j X_j^T
 
         pass_norm_sq, n_cols = for_each_block(source, n_lv, visit, n_cols, norm=it == 1)
         if it == 1:                                                 # the blocks are the same every pass
             check_k(k, n_lv, n_cols)
             norm_sq = pass_norm_sq
-        if tol is None and it < max_iter - 1:                       # a fixed pass count: the result's change needs
+        if C is None or (tol is None and it < max_iter - 1):        # a fixed pass count: the result's change needs
             C = orthonormalise(S)                                   # only the last two passes' Ritz bases
             continue
         V, sigma = ritz(C, C.T @ S)                                 # T = sum_j X_j X_j^T = C^T S; Rayleigh-Ritz
@@ -159,7 +178,7 @@ def block_power_iteration(
         if it < max_iter:                                           # the last pass' S is not iterated on
             C = orthonormalise(S)                                   # M-step C = S T^-1, orthonormalised
     if final == "nystrom":                                          # from the last pass' C and S = B B^T C
-        V, sigma = nystrom(C, S, eps)
+        V, sigma = nystrom(C, S, eps, k)
     check_rank(sigma, k, f"B ({n_lv}, {n_cols})", rank_rtol)
     converged = tol is None or change < tol
     return fix_signs(V[:, :k]), sigma[:k].copy(), it, change, converged, norm_sq

@@ -9,11 +9,11 @@ read ``B`` as column blocks, never whole, and accumulate in float64:
   float64 rounding and one pass, but ``G`` takes :math:`8 n_{lv}^2` bytes and
   the pass costs :math:`n_{lv}^2 n_{tx} / 2` multiply-adds (in float64).
 * ``'randomized'``: Halko et al.'s range finder with ``oversample`` extra
-  vectors (default ``max(10, k // 2)``) and ``n_iter`` power iterations
+  vectors (default ``max(10, 5 k // 8)``) and ``n_iter`` power iterations
   (default 3), re-orthonormalised every pass
   (docs/architecture.md, "Pitfalls": plain power iterations lose accuracy in
-  float32), ending in the Nyström step of the Gram matrix ([4]_): ``n_iter + 1``
-  passes, the ``2 n_iter + 2`` products of Halko's Alg. 4.4.
+  float32), ending in the Nyström step of the Gram matrix ([4]_) in place of Alg. 4.4's last
+  product: ``n_iter + 1`` passes, ``2 n_iter + 1`` products.
 * ``'empca'``: :func:`btfcore.model.empca.empca`, iterated to a tolerance.
 
 ``'auto'`` picks ``'gram'`` when ``G`` fits ``memory_bytes`` and its pass costs
@@ -54,7 +54,7 @@ def column_blocks(B: np.ndarray, width: int) -> list[np.ndarray]:
 
 
 def default_oversample(k: int) -> int:
-    """Default oversampling of 'randomized': ``max(10, k // 2)``.
+    """Default oversampling of 'randomized': ``max(10, 5 k // 8)``.
 
     BTF spectra end in a slowly decaying noise floor, where the range finder's
     accuracy depends on :math:`\\sigma_{k+p}/\\sigma_k` more than on the number of
@@ -65,25 +65,31 @@ def default_oversample(k: int) -> int:
     p = 64, q = 3 gave 0.110 % excess error, just over issue 4's 0.1 % bar,
     and p = 128, q = 3 gave 0.021 % in 71-77 s: hence k // 2. (Those runs
     made 5 passes and ended in Rayleigh-Ritz; with the Nyström end the same
-    q = 3, p = 128 makes 4 passes at 0.0214 %, 57 s on a 206 GFLOP/s host.)
+    q = 3, p = 128 made 4 passes at 0.0214 %, 57 s on a 206 GFLOP/s host.)
+    Since the first pass forms ``B Omega`` (one product instead of two), q = 3 makes 7 products: with
+    p = 128 at 0.045 % in 43.6 s, with p = 160 (5 k // 8) at 0.021 % in 46.5 s, so 5 k // 8 keeps the
+    accuracy for 8 % more arithmetic than k // 2 (docs/benchmarks.md, 2026-12-05 09:17). With a flat
+    noise floor under the spectrum, as BTFs have, power iterations gain more than oversampling: at
+    equal arithmetic q = 2 with twice the oversampling had twice the excess error of q = 3
+    (docs/decisions.md, "Randomized basis: the first pass sketches B Omega").
     """
-    return max(10, k // 2)
+    return max(10, 5 * k // 8)
 
 
 def choose_method(n_lv: int, k: int, *, memory_bytes: int, oversample: int | None = None, n_iter: int = 3) -> str:
     """The rule of ``method='auto'``: ``'gram'`` or ``'randomized'``.
 
     ``'gram'`` when :math:`8 n_{lv}^2 \\le` ``memory_bytes`` (the float64 Gram
-    matrix) and :math:`n_{lv} \\le 2 l (q + 1)`, ``l = k + oversample``,
+    matrix) and :math:`n_{lv} \\le (2 q + 1) l`, ``l = k + oversample``,
     ``q = n_iter``: its one float64 pass of :math:`n_{lv}^2 n_{tx} / 2`
     multiply-adds (a symmetric rank-k update, at about half the float32
-    rate) then costs no more than the randomized method's :math:`q + 1`
-    passes of :math:`2 n_{lv} n_{tx} l` each. Otherwise ``'randomized'`` (predictable cost, unlike EM-PCA's
+    rate) then costs no more than the randomized method's :math:`2 q + 1`
+    products of :math:`n_{lv} n_{tx} l` multiply-adds each. Otherwise ``'randomized'`` (predictable cost, unlike EM-PCA's
     data-dependent number of passes). For the thesis' dome (26,136 rows,
     k = 256) this is randomized; for the tiny test dome (192 rows), gram.
     """
     l = min(k + (default_oversample(k) if oversample is None else oversample), n_lv)
-    return "gram" if 8 * n_lv**2 <= memory_bytes and n_lv <= 2 * l * (n_iter + 1) else "randomized"
+    return "gram" if 8 * n_lv**2 <= memory_bytes and n_lv <= (2 * n_iter + 1) * l else "randomized"
 
 
 def truncated_svd(
@@ -159,19 +165,19 @@ def truncated_svd(
     singular values below about :math:`\\sqrt{n_{lv}\\epsilon}\\,\\sigma_1` are
     not resolved.
 
-    Randomized: Halko et al.'s Alg. 4.4 (randomized subspace iteration) on
-    :math:`G = B B^T`, started from a Gaussian :math:`(n_{lv}, l)` matrix on the row
-    side, so that the result does not depend on how the columns are blocked; each pass forms
-    :math:`Y = B (B^T Q)` block by block and :math:`Q = \\mathrm{orth}(Y)`. The
+    Randomized: Halko et al.'s Alg. 4.4 (randomized subspace iteration). The first pass forms
+    :math:`Y = B \\Omega` (one product; :math:`\\Omega` a Gaussian :math:`(n_{tx}, l)` drawn row by
+    row in column order, so that the result does not depend on how the columns are blocked); each
+    later pass forms :math:`Y = B (B^T Q)` block by block from :math:`Q = \\mathrm{orth}(Y)`. The
     last pass' ``Q`` and ``Y`` give U and sigma by the Nyström approximation
     :math:`Y (Q^T Y)^{-1} Y^T` of ``G`` (Halko et al. §5.4, shifted as in [4]_,
     :func:`btfcore.model._lowrank.nystrom`): the left singular vectors of ``B``
     restricted to the right subspace :math:`B^T Q`, half a power iteration
-    beyond the Rayleigh-Ritz basis of span(Q) at no extra pass. With
-    ``n_iter`` = q that is :math:`(B^T B)^q B^T \\Omega_0`, the subspace
-    Alg. 4.4 builds with ``q`` from the other side, in its ``2q + 2``
-    products. This is :func:`btfcore.model.empca.block_power_iteration` with
-    a fixed pass count and ``final='nystrom'``.
+    beyond the Rayleigh-Ritz basis of span(Q), in place of Alg. 4.4's final product
+    :math:`Q^T B`. With ``n_iter`` = q that is ``q + 1`` passes and ``2q + 1`` products
+    (``n_iter`` = 0: one pass from a Gaussian :math:`(n_{lv}, l)` start, two products). This is
+    :func:`btfcore.model.empca.block_power_iteration` with a fixed pass count and
+    ``final='nystrom'``.
     """
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")

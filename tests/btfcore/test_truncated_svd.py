@@ -54,8 +54,8 @@ def test_streaming_equals_in_memory(method):
 def test_auto_chooses_by_shape_and_memory_and_says_which():
     assert choose_method(192, 32, memory_bytes=2**31) == "gram"               # the tiny dome
     assert choose_method(26136, 256, memory_bytes=2**31) == "randomized"      # the thesis' dome
-    assert choose_method(3072, 256, memory_bytes=2**31) == "gram"             # l = 384, 4 passes: 3072 rows
-    assert choose_method(3073, 256, memory_bytes=2**31) == "randomized"
+    assert choose_method(2912, 256, memory_bytes=2**31) == "gram"             # l = 416, 7 products: 2912 rows
+    assert choose_method(2913, 256, memory_bytes=2**31) == "randomized"
     assert choose_method(192, 32, memory_bytes=8 * 192**2 - 1) == "randomized"
     B = decaying(100, 2000)
     small = truncated_svd(B, 100, 10)
@@ -152,3 +152,66 @@ def test_nystrom_step_on_data_of_lower_rank_than_its_vectors():
     B = _rank12()
     res = truncated_svd(B, 200, 12, "randomized", oversample=18)
     np.testing.assert_allclose(res.sigma, np.geomspace(10, 1, 12), rtol=1e-9)
+
+
+def test_the_first_pass_sketches_b_omega_in_one_product():
+    """Halko et al.'s Alg. 4.4 start: pass 1 forms B Omega with Omega (n_tx, l) Gaussian from the seed, row
+    by row in column order; the next pass forms B B^T orth(B Omega) and the Nyström step ends it. Written
+    out here with numpy, it must give the library's basis (uneven blocks: Omega does not depend on them)."""
+    from btfcore.model._lowrank import nystrom, orthonormalise
+
+    B = decaying()
+    n_lv, n_tx = B.shape
+    l, seed = K + 12, 7
+    Omega = np.random.default_rng(seed).standard_normal((n_tx, l))
+    C = orthonormalise(B @ Omega)
+    U, sigma = nystrom(C, B @ (B.T @ C), float(np.finfo(np.float64).eps), K)
+    res = truncated_svd(uneven_blocks(B, seed=2), n_lv, K, "randomized", n_iter=1, oversample=l - K, seed=seed)
+    assert res.iterations == 2
+    np.testing.assert_allclose(np.abs(res.U.T @ U), np.eye(K), atol=1e-9)     # equal up to column signs
+    np.testing.assert_allclose(res.sigma, sigma[:K], rtol=1e-10)
+
+
+@pytest.mark.parametrize("steep", [False, True])
+def test_nystrom_eigenvectors_from_the_small_gram_matrix_are_checked(steep, monkeypatch):
+    """The Nyström step's eigenvectors come from the l x l Gram matrix of E where that is accurate, and from
+    the SVD of E where the spectrum at k is too steep for it (1e-16 of the largest eigenvalue): both
+    orthonormal to 1e-10 and spanning what the SVD of E spans."""
+    from scipy import linalg
+
+    from btfcore.model._lowrank import nystrom, orthonormalise
+
+    rng = np.random.default_rng(4)
+    n, l, k = 900, 60, 40
+    s = np.exp(-np.arange(l) * 1.0) if steep else np.arange(1, l + 1) ** -0.75
+    Q = orthonormalise(rng.standard_normal((n, l)))
+    C = orthonormalise(Q + 0.3 * rng.standard_normal((n, l)) / np.sqrt(n))
+    S = Q @ (s[:, None] ** 2 * (Q.T @ C))                                   # S = G C, G = Q diag(s^2) Q^T
+    if not steep:                                 # the Gram route alone: no SVD of the tall E
+        svd = np.linalg.svd
+        monkeypatch.setattr(np.linalg, "svd", lambda a, *args, **kw: pytest.fail("SVD of E") if a.shape[0] == n
+                            else svd(a, *args, **kw))
+    U, sigma = nystrom(C, S, 1e-16, k)
+    monkeypatch.undo()
+    assert U.shape == (n, k)
+    assert np.abs(U.T @ U - np.eye(k)).max() < 1e-10
+    nu = 1e-16 * np.linalg.norm(S)
+    Y = S + nu * C
+    E = linalg.solve_triangular(np.linalg.cholesky(C.T @ Y), Y.T, lower=True).T
+    Ue, se, _ = np.linalg.svd(E, full_matrices=False)
+    np.testing.assert_allclose(sigma[:k], np.sqrt(np.maximum(se[:k] ** 2 - nu, 0)), rtol=1e-6, atol=1e-8)  # sqrt(eps)
+    good = se[:k] > 1e-6 * se[0]                  # directions the data resolves
+    np.testing.assert_allclose(np.abs(np.sum(U[:, good] * Ue[:, :k][:, good], axis=0)), 1.0, atol=1e-8)
+
+
+def test_squared_norm_of_float32_blocks_sums_rows_in_float32_and_overflows_in_float64():
+    """||B||^2 from float32 row sums: within 1e-6 of float64 on a wide block; rows whose float32 squares
+    overflow are summed in float64, so only a float64 overflow gives inf."""
+    from btfcore.model._lowrank import squared_norm
+
+    b = np.random.default_rng(0).standard_normal((300, 5000)).astype(np.float32)
+    exact = float(np.sum(b.astype(np.float64) ** 2))
+    assert squared_norm(b) == pytest.approx(exact, rel=1e-6)
+    b[7, 11] = 3e19                                          # its square overflows float32, not float64
+    assert squared_norm(b) == pytest.approx(float(np.sum(b.astype(np.float64) ** 2)), rel=1e-6)
+    assert squared_norm(np.full((2, 2), 1e200)) == np.inf

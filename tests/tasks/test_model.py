@@ -10,7 +10,7 @@ import zarr
 
 from btfcore.model.abtf import blend_patches, patch_matrix
 from btfcore.model.colour import to_log_yuv
-from tasks.model import _bands, abtf_projection_errors, blocks, work_budget
+from tasks.model import _bands, abtf_projection_errors, blocks, prefaulted, work_budget
 
 
 def _store(path, btf: np.ndarray, band_rows: int) -> str:
@@ -105,6 +105,25 @@ def test_transient_blocks_reuse_their_buffers_and_hold_the_same_values(tmp_path)
                 assert not any(np.shares_memory(a, b) for i, a in enumerate(buffers) for b in buffers[i + 1:])
                 for b in [*seen, *source()]:
                     assert sum(np.shares_memory(b, buffer) for buffer in buffers) == 1
+
+
+def test_prefaulted_buffers_are_mapped_up_front_and_writable():
+    """The band buffers of a fit: on Linux an anonymous mapping populated at once (no huge-page
+    compaction at first touch), writable like ``numpy.empty``'s, freed with the array."""
+    import mmap
+    import weakref
+
+    a = prefaulted(1000, np.float32)
+    assert a.shape == (1000,) and a.dtype == np.float32 and a.flags.writeable
+    a[:] = np.arange(1000)
+    assert a[999] == 999
+    if hasattr(mmap, "MAP_POPULATE"):
+        backing = a.base.obj if isinstance(a.base, memoryview) else a.base
+        assert isinstance(backing, mmap.mmap)
+        gone = weakref.ref(backing)
+        del a, backing
+        assert gone() is None                                    # unmapped with the array
+    assert prefaulted(0, np.float64).shape == (0,)
 
 
 def test_reading_ahead_yields_the_same_blocks_in_the_same_order(tmp_path):
