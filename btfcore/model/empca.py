@@ -121,13 +121,10 @@ def block_power_iteration(
     products accurate (docs/architecture.md, "Pitfalls"). At convergence the result is the Ritz
     basis of the last pass' C.
 
-    A fixed pass count (``tol=None``, ``max_iter > 1``) starts as Halko et al.'s Alg. 4.4 does:
-    pass 1 forms :math:`S = B \\Omega = \\sum_j B_j \\Omega_j` (one product; the rows of the Gaussian
-    :math:`\\Omega` are drawn block by block in column order, which gives the same :math:`\\Omega`
-    however the columns are blocked) and has no Ritz step. Started from ``C`` instead, pass 1 costs
-    two products for the one power of :math:`B B^T` that the later passes add anyway: at the thesis'
-    scale q = 3 then took 50-52 s where this start takes 46.5 s at the same accuracy with 5 k // 8
-    oversampling (docs/benchmarks.md, 2026-12-05 09:17).
+    A fixed pass count (``tol=None``, ``max_iter > 1``) starts as Halko et al.'s Alg. 4.4 does: pass 1
+    forms :math:`S = B \\Omega` (one product, no Ritz step; :math:`\\Omega` drawn block by block in
+    column order, the same however the columns are blocked), where a start from ``C`` costs two
+    (docs/decisions.md, "the randomized basis starts from B Omega").
     """
     if criterion not in CRITERIA:
         raise ValueError(f"criterion must be one of {CRITERIA}, got {criterion!r}")
@@ -139,24 +136,10 @@ def block_power_iteration(
     C = None if tol is None and max_iter > 1 else orthonormalise(rng.standard_normal((n_lv, n_basis)))
     n_cols, prev, change, it = None, None, np.inf, 0
     S = np.empty((n_lv, n_basis))
-    products: dict[np.dtype, np.ndarray] = {}                       # B_j X_j^T, one reused buffer per dtype: a
-    for it in range(1, max_iter + 1):                               # fresh one per block costs its page faults
-        S[...] = 0.0
-        cast = {} if C is None else {np.dtype(np.float64): C, np.dtype(np.float32): C.astype(np.float32)}
-
-        def visit(b: np.ndarray) -> None:
-            nonlocal eps
-            eps = max(eps, float(np.finfo(b.dtype).eps))
-            out = products.get(b.dtype)
-            if out is None:
-                out = products[b.dtype] = np.empty((n_lv, n_basis), b.dtype)
-            if C is None:                                           # Omega_j: the rows of a Gaussian (n_tx, l) for
-                X_T = rng.standard_normal((b.shape[1], n_basis), dtype=b.dtype)    # B_j's columns, in order
-            else:
-                X_T = (cast[b.dtype].T @ b).T                       # E-step X_j = (C^T C)^-1 C^T B_j  (Roweis §3)
-            S[...] += np.matmul(b, X_T, out=out)                    # M-step numerator sum_j B_j X_j^T
-
-        pass_norm_sq, n_cols = for_each_block(source, n_lv, visit, n_cols, norm=it == 1)
+    products: dict[np.dtype, np.ndarray] = {}
+    for it in range(1, max_iter + 1):
+        pass_norm_sq, n_cols, pass_eps = _accumulate(source, n_lv, C, rng, S, products, n_cols, it == 1)
+        eps = max(eps, pass_eps)
         if it == 1:                                                 # the blocks are the same every pass
             check_k(k, n_lv, n_cols)
             norm_sq = pass_norm_sq
@@ -182,6 +165,34 @@ def block_power_iteration(
     check_rank(sigma, k, f"B ({n_lv}, {n_cols})", rank_rtol)
     converged = tol is None or change < tol
     return fix_signs(V[:, :k]), sigma[:k].copy(), it, change, converged, norm_sq
+
+
+def _accumulate(source: BlockSource, n_lv: int, C: np.ndarray | None, rng: np.random.Generator, S: np.ndarray,
+                products: dict[np.dtype, np.ndarray], n_cols: int | None, norm: bool) -> tuple[float, int, float]:
+    """One pass of :func:`block_power_iteration`: ``S = sum_j B_j X_j^T`` with ``X_j = C^T B_j``, or with
+    ``X_j^T = Omega_j`` drawn from ``rng`` where ``C`` is None; ``(||B||^2, n_tx, eps of the products)``.
+
+    ``products`` keeps one ``(n_lv, l)`` buffer per dtype for ``B_j X_j^T``: a fresh one per block
+    costs its page faults."""
+    S[...] = 0.0
+    n_basis = S.shape[1]
+    cast = {} if C is None else {np.dtype(np.float64): C, np.dtype(np.float32): C.astype(np.float32)}
+    eps = 0.0
+
+    def visit(b: np.ndarray) -> None:
+        nonlocal eps
+        eps = max(eps, float(np.finfo(b.dtype).eps))
+        out = products.get(b.dtype)
+        if out is None:
+            out = products[b.dtype] = np.empty((n_lv, n_basis), b.dtype)
+        if C is None:                                               # Omega_j: the rows of a Gaussian (n_tx, l) for
+            X_T = rng.standard_normal((b.shape[1], n_basis), dtype=b.dtype)    # B_j's columns, in order
+        else:
+            X_T = (cast[b.dtype].T @ b).T                           # E-step X_j = (C^T C)^-1 C^T B_j  (Roweis §3)
+        S[...] += np.matmul(b, X_T, out=out)                        # M-step numerator sum_j B_j X_j^T
+
+    norm_sq, n_cols = for_each_block(source, n_lv, visit, n_cols, norm=norm)
+    return norm_sq, n_cols, eps
 
 
 def empca(
