@@ -112,6 +112,25 @@ def test_unfitted_texel_and_rank_deficiency_take_the_ridge(backend):
     assert np.linalg.norm(W * (r.U * r.sigma @ r.V - D)) < 1e-5 * np.linalg.norm(W * D)
 
 
+@pytest.mark.parametrize("backend", ["numpy", "torch"])
+def test_normal_systems_solved_in_small_batches_equal_one_batch(backend, monkeypatch):
+    """The CPU factorises CPU_SOLVE_BATCH systems at a time into one reused buffer (a cache-sized batch):
+    batches of 7, which split the ridge's singular systems across batches and leave a short last one,
+    give what one batch gives, singular systems included."""
+    import btfcore.model.als as als
+
+    D = _positive_rank_c(3)
+    W = relative_error_weights(D)
+    W[:, 5] = 0.0
+    runs = []
+    for batch in (10**6, 7):
+        monkeypatch.setattr(als, "CPU_SOLVE_BATCH", batch)
+        runs.append(als_basis(D, 5, W, n_iter=4, tol=0.0, backend=backend))
+    np.testing.assert_allclose(runs[1].objective, runs[0].objective, rtol=1e-10)
+    np.testing.assert_allclose(runs[1].U, runs[0].U, rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(runs[1].V, runs[0].V, rtol=1e-8, atol=1e-10)
+
+
 # --------------------------------------------------------------------------- out of core
 
 
