@@ -296,3 +296,17 @@ def test_colour_matrix_alone_on_a_multiplexed_measurement(tmp_path, affine):
     assert set(ops) == ({"r", "g", "b"} if affine else {"rgb"})
     got = reconstruct_chunk(ops, measured, correction=correction)
     np.testing.assert_allclose(got, B, atol=2e-4 * np.abs(B).max())
+
+
+def test_all_finite_needs_no_mask_of_the_band_and_misses_nothing():
+    """The band checks test the float sum first: a NaN or Inf anywhere is found, and finite values whose
+    sum overflows are not taken for one."""
+    from tasks.reconstruct import _all_finite
+
+    a = np.ones((4, 5, 3), np.float32)
+    assert _all_finite(a)
+    for bad in (np.nan, np.inf, -np.inf):
+        b = a.copy()
+        b[3, 4, 2] = bad
+        assert not _all_finite(b)
+    assert _all_finite(np.full((64,), 3e38, np.float32))           # sums to inf, every value finite
