@@ -306,8 +306,8 @@ class ALSResult:
 
 
 #: Normal systems factorised at a time on the CPU: a batch of 256 64 x 64 systems (4 MB) stays in the cache;
-#: scattering, factorising and solving 20,480 of them took 0.39-0.43 s in batches of 64-512 against 0.72 s
-#: in one batch (torch, 2 threads; docs/benchmarks.md, 2026-12-05).
+#: scattering, factorising and solving 20,480 of them took 0.39-0.45 s in batches of 32-1,024 (256: 0.41 s)
+#: against 0.72 s in one batch (torch, 2 threads; docs/benchmarks.md, 2026-12-05).
 CPU_SOLVE_BATCH = 256
 
 
@@ -616,8 +616,8 @@ class _Streamed:
 
     def v_pass(self, sweep: _Sweep, it: int) -> None:
         """One :class:`_Sweep` over the blocks; the first pass also counts the columns, checks ``c`` and takes
-        the norm and the NaN/Inf test (a float64 pass over every block: 1.5 s of a 5.1 GB matrix's pass,
-        which later passes over the same blocks need not repeat)."""
+        the norm and the NaN/Inf test (:func:`btfcore.model._lowrank.squared_norm`, a pass over every block
+        that later passes over the same blocks need not repeat)."""
         ops, dt = self.ops, self.ops.dtype
         pass_norm_sq, cols = for_each_block(
             self.source, self.n_lv, lambda b: sweep.block(ops.asarray(b.astype(dt, copy=False))), self.n_tx,

@@ -70,7 +70,7 @@ def default_oversample(k: int) -> int:
     p = 128 at 0.045 % in 43.6 s, with p = 160 (5 k // 8) at 0.021 % in 46.5 s, so 5 k // 8 keeps the
     accuracy for 8 % more arithmetic than k // 2 (docs/benchmarks.md, 2026-12-05 09:17). With a flat
     noise floor under the spectrum, as BTFs have, power iterations gain more than oversampling: at
-    equal arithmetic q = 2 with twice the oversampling had twice the excess error of q = 3
+    equal arithmetic q = 2 with twice the oversampling had 2-3x the excess error of q = 3
     (docs/decisions.md, "Randomized basis: the first pass sketches B Omega").
     """
     return max(10, 5 * k // 8)
