@@ -24,9 +24,9 @@ torch's default threads). Reported:
   which may be faster), best of 3 each, measured before and after;
   ``over_gemm_peak`` divides by the largest of all, ``over_torch_gemm_peak``
   by the largest torch one;
-* ``cholesky_s_per_iteration``: the batched Cholesky factorisation and solve
-  of ``n_tx + n_lv`` random SPD ``c x c`` systems, timed on its own, and its
-  share of an iteration.
+* ``cholesky_s_per_iteration``: the library's solve of ``n_tx + n_lv`` packed random SPD
+  ``c x c`` normal systems (scatter, batched Cholesky, triangular solves), timed on its own,
+  and its share of an iteration.
 
 Bar (issue 21, raising issue 4's 0.40): the batched ALS solve runs at no less than 0.8 of the
 GEMM rate (``over_gemm_peak``).
@@ -70,21 +70,26 @@ def gemm_rates(n_lv: int, step: int, n_pack: int, device: str = "cpu") -> dict[s
 
 
 def cholesky_seconds(n_systems: int, c: int, step: int, device: str = "cpu") -> float:
-    """Seconds to factor and solve ``n_systems`` SPD ``c x c`` systems in batches of ``step``, as als does."""
+    """Seconds the library's normal-equation solve (``als._solve_packed``: scatter the packed triangles,
+    factorise, two triangular solves, in its CPU batches and threads) takes for ``n_systems`` SPD
+    ``c x c`` systems handed over in chunks of ``step``, as one iteration's V- and U-steps do."""
     import torch
 
+    from btfcore.model import als
+
+    ops = als._ops("torch", device, np.dtype(np.float32))
+    iu, ju = (ops.asarray(i) for i in np.triu_indices(c))
     g = torch.Generator().manual_seed(0)
     A = torch.randn((step, 2 * c, c), generator=g)
-    G = (A.transpose(1, 2) @ A + torch.eye(c)).to(device)
-    R = torch.randn((step, c, 1), generator=g).to(device)
+    G = A.transpose(1, 2) @ A + torch.eye(c)
+    Gp, R = G[:, iu, ju].to(device), torch.randn((step, c), generator=g).to(device)
     sync = torch.cuda.synchronize if device != "cpu" else (lambda: None)
     sync()
     start = time.perf_counter()
     done = 0
     while done < n_systems:
         m = min(step, n_systems - done)
-        L, _ = torch.linalg.cholesky_ex(G[:m])
-        torch.cholesky_solve(R[:m], L)
+        als._solve_packed(ops, Gp[:m], R[:m], iu, ju, c, m)
         done += m
     sync()
     return time.perf_counter() - start
@@ -110,6 +115,7 @@ def main() -> int:
         args.n_lv, args.n_tx, args.c, args.repeats = 1024, 4096, 32, 1
     import torch
 
+    from btfcore.model import als
     from btfcore.model.als import CHUNK_BYTES, als_basis, relative_error_weights
 
     n_lv, n_tx, c = args.n_lv, args.n_tx, args.c
@@ -125,7 +131,7 @@ def main() -> int:
     del A, B
     n_pack = c * (c + 1) // 2
     chunk_bytes = CHUNK_BYTES if args.chunk_mb is None else args.chunk_mb * 2**20
-    step = int(min(n_tx, max(1, chunk_bytes // (4 * (3 * n_lv + n_pack + 2 * c * c)))))   # als_basis' chunk
+    step = als._chunk_size(als._per_texel_floats(n_lv, c), 4, n_tx, chunk_bytes)   # als_basis' chunk
     device = "cuda" if args.backend != "numpy" and torch.cuda.is_available() else "cpu"   # where als_basis runs
     gemm_before = gemm_rates(n_lv, step, n_pack, device)
     log(f"GEMM GFLOP/s: {gemm_before}")

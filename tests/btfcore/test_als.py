@@ -41,6 +41,20 @@ def test_relative_error_weights_floor():
         relative_error_weights(np.array([[1.0, 2.0], [np.inf, 1.0]]))
 
 
+@pytest.mark.parametrize("backend", ["numpy", "torch"])
+def test_default_weights_equal_the_explicit_ones(backend):
+    """The V-step forms the default W^2 as 1/max(D^2, floor^2) in place: the fit equals one given
+    relative_error_weights(D, floor) in float32, with values below the floor and of both signs (to
+    float32 rounding: the weights differ by an ulp, which the huge weights of the floored row amplify)."""
+    D = _noisy(8).astype(np.float32)
+    D[0, :5] = [0.0, -1e-9, 1e-9, -0.5, 0.0]
+    default = als_basis(D, 4, n_iter=5, tol=0.0, backend=backend)
+    given = als_basis(D, 4, relative_error_weights(D, floor=default.floor), n_iter=5, tol=0.0, backend=backend)
+    np.testing.assert_allclose(default.objective, given.objective, rtol=1e-5)
+    model = default.U * default.sigma @ default.V
+    assert np.linalg.norm(model - given.U * given.sigma @ given.V) < 1e-4 * np.linalg.norm(model)
+
+
 # --------------------------------------------------------------------------- ALS bars
 
 
@@ -114,21 +128,38 @@ def test_unfitted_texel_and_rank_deficiency_take_the_ridge(backend):
 
 @pytest.mark.parametrize("backend", ["numpy", "torch"])
 def test_normal_systems_solved_in_small_batches_equal_one_batch(backend, monkeypatch):
-    """The CPU factorises CPU_SOLVE_BATCH systems at a time into one reused buffer (a cache-sized batch):
-    batches of 7, which split the ridge's singular systems across batches and leave a short last one,
-    give what one batch gives, singular systems included."""
+    """The CPU factorises CPU_SOLVE_BATCH systems at a time into one reused buffer per thread (a
+    cache-sized batch): batches of 7 shared among 1 and 3 threads, which split the ridge's singular
+    systems across batches and threads and leave a short last one, give what one batch gives."""
     import btfcore.model.als as als
 
     D = _positive_rank_c(3)
     W = relative_error_weights(D)
     W[:, 5] = 0.0
     runs = []
-    for batch in (10**6, 7):
+    for batch, threads in ((10**6, 1), (7, 1), (7, 3)):
         monkeypatch.setattr(als, "CPU_SOLVE_BATCH", batch)
+        monkeypatch.setattr(als, "CPU_SOLVE_THREADS", threads)
         runs.append(als_basis(D, 5, W, n_iter=4, tol=0.0, backend=backend))
-    np.testing.assert_allclose(runs[1].objective, runs[0].objective, rtol=1e-10)
-    np.testing.assert_allclose(runs[1].U, runs[0].U, rtol=1e-8, atol=1e-10)
-    np.testing.assert_allclose(runs[1].V, runs[0].V, rtol=1e-8, atol=1e-10)
+    for run in runs[1:]:
+        np.testing.assert_allclose(run.objective, runs[0].objective, rtol=1e-10)
+        np.testing.assert_allclose(run.U, runs[0].U, rtol=1e-8, atol=1e-10)
+        np.testing.assert_allclose(run.V, runs[0].V, rtol=1e-8, atol=1e-10)
+
+
+def test_a_failing_solve_in_a_thread_is_raised(monkeypatch):
+    """An error in one of the solving threads reaches the caller, not a lost thread."""
+    import btfcore.model.als as als
+
+    monkeypatch.setattr(als, "CPU_SOLVE_BATCH", 7)
+    monkeypatch.setattr(als, "CPU_SOLVE_THREADS", 3)
+
+    def broken(self, G, R):
+        raise FloatingPointError("solve failed")
+
+    monkeypatch.setattr(als._NumpyOps, "solve_spd", broken)
+    with pytest.raises(FloatingPointError, match="solve failed"):
+        als_basis(_positive_rank_c(3), 3, n_iter=2, backend="numpy")
 
 
 # --------------------------------------------------------------------------- out of core
