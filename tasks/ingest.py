@@ -42,7 +42,6 @@ demultiplexed, ``btf reconstruct`` solves for the BTF.
 from __future__ import annotations
 
 import os
-import threading
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -53,6 +52,7 @@ import numpy as np
 from btfcore.capture.demultiplex import demultiplex_operator
 from btfcore.capture.view_chain import IngestSettings, lv_directions, process_view, view_window
 from btfcore.model.colour import REC709_LUMA
+from tasks.buffers import reused_buffer
 from tasks.compute import run_all
 from tasks.faults import kill_point
 from tasks.measurement import (
@@ -91,7 +91,6 @@ __all__ = [
     "ingest_hash",
     "ingest_view",
     "led_scale",
-    "reused_buffer",
     "staging_path",
     "view_chain_arguments",
 ]
@@ -256,20 +255,6 @@ def create_ingest_store(path: str | os.PathLike, capture: CaptureStore, settings
     }, light_dir=light_dir, view_dir=view_dir, lv_index=lv_index, texture_shape=(h, w), rows_per_chunk=n_leds,
         band=band_rows(n_leds, h, w), written_shape=(n_turn, n_cam), small=small,
         valid_fraction_shape=(n_turn, n_cam, n_illum), roi_shape=capture.roi_shape if keep_roi else None)
-
-
-_workspace = threading.local()
-
-
-def reused_buffer(name: str, shape: tuple[int, ...], dtype: Any) -> np.ndarray:
-    """A per-thread array that outlives the task: first-touch of fresh memory costs about a fifth
-    of a view's work here (docs/benchmarks.md), so a worker's views share their large buffers."""
-    buffers = _workspace.__dict__.setdefault("buffers", {})
-    size, dtype = int(np.prod(shape)), np.dtype(dtype)
-    flat = buffers.get(name)
-    if flat is None or flat.size < size or flat.dtype != dtype:
-        flat = buffers[name] = np.empty(size, dtype)
-    return flat[:size].reshape(shape)
 
 
 def ingest_view(capture_path: str, meta: CaptureMetadata, out_path: str, settings: IngestSettings, t: int, c: int,

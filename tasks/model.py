@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import mmap
 import os
 import shutil
 from collections.abc import Callable, Iterator, Sequence
@@ -51,6 +50,7 @@ from btfcore.model.als import als_basis
 from btfcore.model.colour import to_log_yuv
 from btfcore.model.eigenspace_merging import merge_eigenspaces
 from btfcore.model.truncated_svd import truncated_svd
+from tasks.buffers import prefaulted
 from tasks.compute import run_all
 from tasks.faults import kill_point
 from tasks.integrity import create_array, read_chunk_rows
@@ -232,21 +232,6 @@ def _bands(btf: zarr.Array, multiple: int = 1, max_bytes: int | None = None) -> 
         sub = min(step, max(multiple, max_bytes // row_bytes // multiple * multiple))
     return [(s, min(s + sub, r + step, usable)) for r in range(0, usable, step)
             for s in range(r, min(r + step, usable), sub)]
-
-
-def prefaulted(n: int, dtype: Any) -> np.ndarray:
-    """An uninitialised ``(n,)`` array whose pages are all mapped at once (Linux ``MAP_POPULATE``), for a
-    large buffer that is filled and reused: ``numpy.empty`` asks the kernel for huge pages
-    (``madvise``), whose first touch, with the kernel's ``defrag`` setting at ``madvise``, can wait for
-    memory compaction: 1.07 s against 0.16-0.22 s for 522 MB on the 2-core VM (docs/benchmarks.md,
-    2026-12-05), with the same GEMM rate on either. Workers already turn the hint off
-    (``NUMPY_MADVISE_HUGEPAGE=0``, docs/architecture.md, "Pitfalls"); this covers a fit in any other
-    process too. Elsewhere, ``numpy.empty``. The memory is given back when the array is freed."""
-    populate = getattr(mmap, "MAP_POPULATE", 0)
-    nbytes = n * np.dtype(dtype).itemsize
-    if not populate or nbytes == 0:
-        return np.empty(n, dtype)
-    return np.frombuffer(mmap.mmap(-1, nbytes, flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS | populate), dtype, n)
 
 
 def blocks(path: str, basis: str, patch: int = 3, max_bytes: int | None = None, *, transient: bool = False

@@ -37,6 +37,7 @@ from __future__ import annotations
 import os
 import shutil
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Callable
@@ -68,8 +69,8 @@ from btfcore.acquisition.reconstruct import (
 )
 from tasks.compute import run_all
 from tasks.faults import kill_point
-from tasks.ingest import reused_buffer
-from tasks.integrity import read_chunk_rows
+from tasks.buffers import reused_buffer
+from tasks.integrity import read_chunk_rows, write_chunk_rows
 from tasks.staging import commit_staged, finish_interrupted_commit, staging_path, store_attrs
 from tasks.stores.btf import LV_ORDER, SCHEMA_NAME, SCHEMA_VERSION, BtfStore, create_btf_store, open_btf_store
 from tasks.stores.btf import band_rows as btf_band_rows
@@ -370,7 +371,8 @@ def build_operators(settings: ReconstructSettings, model: zarr.Group, G: np.ndar
 
 def reconstruct_chunk(ops: dict[str, SolveOperator], measured: np.ndarray, *, out_rows: tuple[int, int] | None = None,
                       height: int | None = None, correction: RowCorrection | None = None,
-                      out: np.ndarray | None = None) -> np.ndarray:
+                      out: np.ndarray | None = None, part_rows: int | None = None,
+                      on_rows: Callable[[slice], None] | None = None) -> np.ndarray:
     """Reconstruct a band of textures from measured ones (in memory).
 
     Parameters
@@ -387,6 +389,9 @@ def reconstruct_chunk(ops: dict[str, SolveOperator], measured: np.ndarray, *, ou
         the per-channel result after it.
     out : (n_lv, rows * w * 3) ndarray of float32, optional
         Buffer for the result of a float32 linear (``rgb``) operator; other operators ignore it.
+    part_rows, on_rows : optional
+        A linear (``rgb``) operator only: the light/view rows computed ``part_rows`` at a time, each
+        finished slice handed to ``on_rows`` (:func:`btfcore.acquisition.reconstruct.apply`).
 
     Returns
     -------
@@ -400,7 +405,8 @@ def reconstruct_chunk(ops: dict[str, SolveOperator], measured: np.ndarray, *, ou
         return out if correction.matrix is None else apply_colour_matrix(out, correction.matrix).astype(np.float32)
     if "rgb" in ops:
         buffer = out if ops["rgb"].dtype == np.float32 else None
-        return apply(ops["rgb"], measured, out=buffer).astype(np.float32, copy=False)
+        return apply(ops["rgb"], measured, out=buffer, part_rows=part_rows, on_rows=on_rows).astype(np.float32,
+                                                                                                    copy=False)
     x = to_log_yuv(np.asarray(measured, dtype=np.float32))           # paper 1 §3.1: log Y, U/Y, V/Y
     if ops["y"].patch_size is not None:
         y = reconstruct_abtf(ops["y"], x[..., 0], out_rows=out_rows, height=height)
@@ -411,6 +417,17 @@ def reconstruct_chunk(ops: dict[str, SolveOperator], measured: np.ndarray, *, ou
         y = apply(ops["y"], x[..., 0])
     res = np.stack([y, apply(ops["u"], x[..., 1]), apply(ops["v"], x[..., 2])], axis=-1)
     return from_log_yuv(res.astype(np.float32, copy=False))
+
+
+#: Parts of a band's light/view rows (whole chunks) that :func:`reconstruct_band` writes, each while the next is
+#: solved (docs/benchmarks.md, 2026-12-05).
+WRITE_PARTS = 8
+
+
+def _check_output(out: np.ndarray, in_path: str, r0: int, r1: int) -> None:
+    if not _all_finite(out):
+        raise ValueError(f"{in_path}: the reconstruction of texture rows {r0}:{r1} is not finite (a log basis "
+                         "extrapolated beyond the float range); use --method tikhonov or --basis als")
 
 
 def _all_finite(a: np.ndarray) -> bool:
@@ -441,17 +458,27 @@ def reconstruct_band(in_path: str, out_path: str, ops: dict[str, SolveOperator],
         raise ValueError(f"{in_path}: {arr.basename}{idx} = {float(measured[first])!r} "
                          f"({int(measured.size - finite.sum())} NaN/Inf values in texture rows {rows.start}:"
                          f"{rows.stop}); write the input again with `btf ingest` (or the command that wrote it)")
-    if p is not None:
-        out = reconstruct_chunk(ops, measured, out_rows=(r0, r1), height=h, correction=correction)
-    else:                                       # a worker thread's bands share one output buffer
-        buffer = reused_buffer("reconstruct-band", (ops["rgb"].n_out, measured[0].size), np.float32) \
-            if "rgb" in ops else None
-        out = reconstruct_chunk(ops, measured, correction=correction, out=buffer)
-    if not _all_finite(out):
-        raise ValueError(f"{in_path}: the reconstruction of texture rows {r0}:{r1} is not finite (a log basis "
-                         "extrapolated beyond the float range); use --method tikhonov or --basis als")
     dst = BtfStore(out_path, "r+").group
-    dst["btf"][:, r0:r1] = out
+    btf = dst["btf"]
+    shape = (btf.shape[0], r1 - r0, *btf.shape[2:])
+    if p is not None or "rgb" not in ops or ops["rgb"].dtype != np.float32:
+        out = reconstruct_chunk(ops, measured, out_rows=(r0, r1) if p is not None else None, height=h,
+                                correction=correction)
+        _check_output(out, in_path, r0, r1)
+        write_chunk_rows(btf, r0, r1, out.reshape(shape))
+    else:               # a worker thread's bands share one output buffer; one part is written while the next is solved
+        buffer = reused_buffer("reconstruct-band", (ops["rgb"].n_out, measured[0].size), np.float32)
+        part_rows = -(-btf.shape[0] // btf.chunks[0] // WRITE_PARTS) * btf.chunks[0]          # whole chunks
+        with ThreadPoolExecutor(1) as writer:
+            writes = []
+
+            def write(rows: slice) -> None:
+                _check_output(buffer[rows], in_path, r0, r1)
+                writes.append(writer.submit(write_chunk_rows, btf, r0, r1, buffer.reshape(shape), rows))
+
+            reconstruct_chunk(ops, measured, correction=correction, out=buffer, part_rows=part_rows, on_rows=write)
+            for done in writes:
+                done.result()
     kill_point("chunk-written")
     dst["written"][band] = 1
     return band

@@ -71,7 +71,7 @@ References
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -571,7 +571,8 @@ def _as_chunk(measured, operator: SolveOperator) -> tuple[np.ndarray, tuple[int,
     return flat.astype(operator.dtype, copy=False), y.shape[1:]
 
 
-def apply(operator: SolveOperator, measured: np.ndarray, *, out: np.ndarray | None = None) -> np.ndarray:
+def apply(operator: SolveOperator, measured: np.ndarray, *, out: np.ndarray | None = None,
+          part_rows: int | None = None, on_rows: Callable[[slice], None] | None = None) -> np.ndarray:
     """Reconstruct a chunk of texels: :math:`\\hat B = U (R\\, y)`.
 
     Parameters
@@ -584,6 +585,11 @@ def apply(operator: SolveOperator, measured: np.ndarray, *, out: np.ndarray | No
     out : (n_out, m) ndarray, optional
         C-contiguous buffer of the operator's dtype for the result (``m`` =
         the product of the trailing shape); avoids an allocation per chunk.
+    part_rows, on_rows : optional
+        Compute the output ``part_rows`` rows at a time and call
+        ``on_rows(rows)`` with each finished slice of rows, so that a caller
+        can store one part while the next is computed (the same rows as one
+        product, to rounding).
 
     Returns
     -------
@@ -607,10 +613,17 @@ def apply(operator: SolveOperator, measured: np.ndarray, *, out: np.ndarray | No
     if out is not None and (out.shape != shape or out.dtype != operator.dtype or not out.flags.c_contiguous):
         raise ValueError(f"out must be a C-contiguous {operator.dtype} array of shape {shape}, got "
                          f"{out.dtype} {out.shape}")
-    if operator.fused is not None:
-        res = np.matmul(operator.fused, y, out=out)                   # B = (U R) y
+    left, right = ((operator.fused, y) if operator.fused is not None          # B = (U R) y
+                   else (operator.basis, operator.coefficients @ y))        # B = U (R y)
+    if part_rows is None:
+        res = np.matmul(left, right, out=out)
     else:
-        res = np.matmul(operator.basis, operator.coefficients @ y, out=out)   # B = U (R y)
+        res = np.empty(shape, operator.dtype) if out is None else out
+        for r0 in range(0, operator.n_out, part_rows):
+            rows = slice(r0, min(r0 + part_rows, operator.n_out))
+            np.matmul(left[rows], right, out=res[rows])
+            if on_rows is not None:
+                on_rows(rows)
     return res.reshape((operator.n_out,) + trailing)
 
 

@@ -244,6 +244,16 @@ def test_chunked_apply_equals_whole(method, fused):
     assert apply(op, y[:, :13], out=out) is not None
     np.testing.assert_allclose(out, whole[:, :13], rtol=1e-5, atol=1e-5)
     assert apply(op, y.reshape(op.n_meas, 7, 11)).shape == (N_LV, 7, 11)
+    done: list[slice] = []                                            # in row parts, each handed over when done
+    parts = np.full((op.n_out, 77), np.nan, np.float32)
+
+    def finished(rows: slice) -> None:
+        np.testing.assert_allclose(parts[rows], whole.reshape(op.n_out, 77)[rows], rtol=1e-5, atol=1e-5)
+        assert np.isnan(parts[rows.stop:]).all()                      # the rows after it are not computed yet
+        done.append(rows)
+
+    assert apply(op, y.reshape(op.n_meas, 7, 11), out=parts, part_rows=5, on_rows=finished).shape == (N_LV, 7, 11)
+    assert [(r.start, r.stop) for r in done] == [(a, min(a + 5, op.n_out)) for a in range(0, op.n_out, 5)]
 
 
 # --------------------------------------------------------------------------- ABTF patches

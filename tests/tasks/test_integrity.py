@@ -264,6 +264,94 @@ def test_rows_within_one_chunk_row_are_read_without_zarr_and_across_chunk_rows_t
         assert (len(calls) == before) == straight, (start, stop)          # no read through Zarr: straight
 
 
+def _chunk_bytes(path: Path) -> dict[str, bytes]:
+    return {str(f.relative_to(path)): f.read_bytes() for f in sorted(path.rglob("*")) if f.is_file()
+            and "zarr.json" not in f.name}
+
+
+def _direct_io_works(folder: Path) -> bool:
+    """Whether this file system takes an O_DIRECT write of one aligned block."""
+    import mmap
+    import os
+
+    if not hasattr(os, "O_DIRECT"):
+        return False
+    block = mmap.mmap(-1, 4096)
+    try:
+        fd = os.open(folder / "probe", os.O_WRONLY | os.O_CREAT | os.O_DIRECT, 0o644)
+    except OSError:
+        return False
+    try:
+        return os.write(fd, memoryview(block)[:integrity.DIRECT_BLOCK]) == integrity.DIRECT_BLOCK
+    except OSError:
+        return False
+    finally:
+        os.close(fd)
+        os.remove(folder / "probe")
+
+
+def test_whole_chunk_rows_are_written_as_zarr_writes_them(tmp_path, monkeypatch):
+    """A band of whole chunks written from a page-aligned buffer gives the chunk files Zarr writes, byte for
+    byte: a chunk of fill values only is not stored and its old file is removed, as Zarr does; the first
+    chunk's aligned 512-byte block goes past the page cache where the file system takes O_DIRECT. Rows
+    that are not one whole chunk row go through Zarr."""
+    import fcntl
+    import os
+
+    from tasks.buffers import prefaulted
+
+    by_zarr, ours = _banded(tmp_path / "zarr.zarr"), _banded(tmp_path / "ours.zarr")
+    data = np.random.default_rng(9).uniform(1, 2, (12, 10, 5, 3)).astype(np.float32)
+    data[4:8, 0:4] = 0.0                                            # chunk (1, 0): fill values only
+    direct: list[bool] = []
+    original = fcntl.fcntl
+
+    def spied(fd, cmd, *args):
+        direct.append(bool(cmd == fcntl.F_SETFL and args and args[0] & os.O_DIRECT))
+        return original(fd, cmd, *args)
+
+    monkeypatch.setattr(fcntl, "fcntl", spied)
+    for start, stop in ((0, 4), (4, 8), (1, 5), (8, 10)):
+        band = prefaulted(data[:, start:stop].size, np.float32).reshape(12, stop - start, 5, 3)
+        band[...] = data[:, start:stop]
+        by_zarr[:, start:stop] = band
+        integrity.write_chunk_rows(ours, start, stop, band)
+    assert not (tmp_path / "ours.zarr" / "btf" / "c" / "1" / "0" / "0" / "0").exists()
+    assert _chunk_bytes(tmp_path / "ours.zarr") == _chunk_bytes(tmp_path / "zarr.zarr")
+    np.testing.assert_array_equal(ours[...], data)
+    assert any(direct) == _direct_io_works(tmp_path), direct
+    assert not list((tmp_path / "ours.zarr").rglob("*.partial"))
+    band = prefaulted(12 * 4 * 5 * 3, np.float32).reshape(12, 4, 5, 3)   # in parts of whole chunks
+    band[...] = -data[:, 4:8]
+    by_zarr[:, 4:8] = band
+    for lv in (slice(8, 12), slice(0, 8)):
+        integrity.write_chunk_rows(ours, 4, 8, band, lv)
+    assert _chunk_bytes(tmp_path / "ours.zarr") == _chunk_bytes(tmp_path / "zarr.zarr")
+    with pytest.raises(ValueError, match="light/view rows 2:8 are not whole chunks of 4"):
+        integrity.write_chunk_rows(ours, 4, 8, band, slice(2, 8))
+
+
+def test_a_failed_chunk_write_leaves_the_old_file_and_no_partial_one(tmp_path, monkeypatch):
+    """A write that fails (a full disk) raises, removes its temporary file and leaves the chunk's old file."""
+    import errno
+    import os
+
+    from tasks.buffers import prefaulted
+
+    array = _banded(tmp_path / "b.zarr")
+    before = _chunk_bytes(tmp_path / "b.zarr")
+    band = prefaulted(12 * 4 * 5 * 3, np.float32).reshape(12, 4, 5, 3)
+    band[...] = 7.0
+
+    def full(*args):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(os, "pwrite", full)
+    with pytest.raises(OSError, match="No space left"):
+        integrity.write_chunk_rows(array, 0, 4, band)
+    assert _chunk_bytes(tmp_path / "b.zarr") == before
+
+
 def test_a_damaged_or_missing_chunk_in_a_whole_band_is_left_to_zarr(tmp_path, chunk_files):
     """A flipped byte or a cut file is named as any read names it; a missing chunk reads as fill values."""
     path = tmp_path / "b.zarr"

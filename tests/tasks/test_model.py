@@ -10,7 +10,8 @@ import zarr
 
 from btfcore.model.abtf import blend_patches, patch_matrix
 from btfcore.model.colour import to_log_yuv
-from tasks.model import _bands, abtf_projection_errors, blocks, prefaulted, work_budget
+from tasks.buffers import prefaulted
+from tasks.model import _bands, abtf_projection_errors, blocks, work_budget
 
 
 def _store(path, btf: np.ndarray, band_rows: int) -> str:
