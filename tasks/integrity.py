@@ -397,9 +397,11 @@ def read_chunk_rows(array: zarr.Array, start: int, stop: int, out: np.ndarray) -
     import google_crc32c
 
     shape, chunks = array.shape, array.chunks
-    local = _whole_chunk_layout(array, start, stop, out)
+    local = _plain_chunks(array, out.dtype)
     n_groups = shape[0] // chunks[0]
-    fast = local is not None
+    fast = (local is not None and out.flags.c_contiguous and out.shape == (shape[0], stop - start, *shape[2:])
+            and 0 <= start < stop <= shape[1] and start // chunks[1] == (stop - 1) // chunks[1]
+            and shape[0] % chunks[0] == 0)
     if fast:
         row, first = divmod(start, chunks[1])
         whole = first == 0 and stop - start == chunks[1]
@@ -428,61 +430,81 @@ def read_chunk_rows(array: zarr.Array, start: int, stop: int, out: np.ndarray) -
                               out=default_buffer_prototype().nd_buffer.from_numpy_array(out))
 
 
-def _whole_chunk_layout(array: zarr.Array, start: int, stop: int, data: np.ndarray) -> str | None:
-    """The local folder of ``array`` where ``data`` (``array[:, start:stop]``) can be read or written as whole
-    chunk files without Zarr: the array chunked along its first two axes only, uncompressed with a CRC32C
-    checksum (what :func:`create_array` makes), little-endian, on a local store, and ``data`` C-contiguous
-    in the array's native dtype with the rows of one chunk row; None otherwise."""
+def _plain_chunks(array: zarr.Array, dtype: np.dtype) -> str | None:
+    """The local folder of ``array`` where its chunk files can be read or written without Zarr: chunked along
+    its first two axes only, uncompressed with a CRC32C checksum (what :func:`create_array` makes),
+    little-endian, on a local store, for values of ``dtype`` (its native dtype); None otherwise."""
     shape, chunks = array.shape, array.chunks
     local = _local_root(array)
-    ok = (local is not None and data.flags.c_contiguous and data.shape == (shape[0], stop - start, *shape[2:])
-          and 0 <= start < stop <= shape[1] and start // chunks[1] == (stop - 1) // chunks[1]
-          and tuple(chunks[2:]) == tuple(shape[2:]) and shape[0] % chunks[0] == 0
+    ok = (local is not None and array.ndim >= 2 and tuple(chunks[2:]) == tuple(shape[2:])
           and not array.filters and len(array.compressors) == 1 and has_checksums(array)
           and getattr(array.serializer, "endian", None) is not None and array.serializer.endian.value == "little"
-          and data.dtype == _native_dtype(array.dtype) and data.dtype.byteorder in ("=", "<", "|"))
+          and dtype == _native_dtype(array.dtype) and dtype.byteorder in ("=", "<", "|"))
     return local if ok else None
 
 
-def write_chunk_rows(array: zarr.Array, start: int, stop: int, data: np.ndarray, lv: slice | None = None) -> None:
-    """``array[:, start:stop] = data`` where ``start:stop`` is one whole chunk row (the mirror of
-    :func:`read_chunk_rows`), each chunk file written past the page cache where the file system allows;
-    with ``lv`` (whole chunks of the first axis) only ``array[lv, start:stop] = data[lv]``.
+def write_whole_chunks(array: zarr.Array, lv: slice, rows: slice, data: np.ndarray) -> None:
+    """``array[lv, rows] = data`` for a block of whole chunks (edges at chunk boundaries or the array's end),
+    each chunk file written past the page cache where the file system allows (the mirror of
+    :func:`read_chunk_rows`).
 
-    On the layout :func:`read_chunk_rows` reads directly, each chunk's bytes and their CRC32C go to a
-    temporary file renamed into place, as Zarr's local store writes them (same bytes; a chunk that holds
-    only the fill value is not stored, and an old file of it removed, as Zarr does without
-    ``write_empty_chunks``). The part of a chunk that starts at a 512-byte aligned address (a
-    :func:`tasks.buffers.reused_buffer` is page-aligned) and spans whole 512-byte blocks is written
-    with ``O_DIRECT``: on the 2-core VM a buffered write of 522 MB into fresh page-cache pages cost 1.26 s of
-    CPU in the kernel, a direct one 0.015 s at the disk's rate, so the writes no longer take the CPU the
-    other worker's solve needs (docs/benchmarks.md, 2026-12-05). Elsewhere (a file system without
-    ``O_DIRECT``, unaligned data) the same file is written buffered, and any other layout through Zarr.
+    Where Zarr is not needed (:func:`_plain_chunks`), each chunk's bytes and their CRC32C go to a temporary
+    file renamed into place, as Zarr's local store writes them: the same bytes, an edge chunk padded with
+    the fill value, and a chunk that holds only the fill value not stored (an old file of it removed), as
+    Zarr does without ``write_empty_chunks``. A chunk's values are written from ``data`` itself where they
+    are contiguous there and start at a 512-byte aligned address (a :func:`tasks.buffers.reused_buffer`
+    is page-aligned), else from a page-aligned per-thread copy. Their whole 512-byte blocks go with
+    ``O_DIRECT``: on the 2-core VM a buffered write of 522 MB into fresh page-cache pages cost 1.26 s of
+    kernel CPU, a direct one 0.015 s at the disk's rate (docs/benchmarks.md, 2026-12-05). A file system
+    without ``O_DIRECT`` gets the same files buffered; any other layout is written through Zarr.
+
+    Raises
+    ------
+    ValueError
+        Where the block does not start and end at chunk boundaries.
     """
     import google_crc32c
 
-    local = _whole_chunk_layout(array, start, stop, data)
-    chunks = array.chunks
+    from tasks.buffers import reused_buffer
+
+    shape, chunks = array.shape, array.chunks
+    (l0, l1, _), (r0, r1, _) = lv.indices(shape[0]), rows.indices(shape[1])
+    for axis, (a, b) in enumerate(((l0, l1), (r0, r1))):
+        if a % chunks[axis] or (b % chunks[axis] and b != shape[axis]) or b <= a:
+            raise ValueError(f"{array.path}[{l0}:{l1}, {r0}:{r1}] is not a block of whole chunks "
+                             f"{tuple(chunks[:2])} on axis {axis}")
+    local = _plain_chunks(array, data.dtype)
     fill = array.fill_value
-    if (local is None or start % chunks[1] or stop - start != chunks[1] or array.async_array.config.write_empty_chunks
+    if (local is None or data.shape != (l1 - l0, r1 - r0, *shape[2:]) or array.async_array.config.write_empty_chunks
             or fill is None or not np.isfinite(fill)):
-        array[lv or slice(None), start:stop] = data[lv or slice(None)]
+        array[l0:l1, r0:r1] = data
         return
-    size = int(np.prod(chunks)) * data.itemsize
-    flat = data.reshape(-1).view(np.uint8)
     rest = (0,) * (array.ndim - 2)
-    first, last, _ = (lv or slice(None)).indices(array.shape[0])
-    if first % chunks[0] or (last % chunks[0] and last != array.shape[0]):
-        raise ValueError(f"light/view rows {first}:{last} are not whole chunks of {chunks[0]}")
-    for i in range(first // chunks[0], -(-last // chunks[0])):
-        path = os.path.join(local, *array.metadata.encode_chunk_key((i, start // chunks[1], *rest)).split("/"))
-        values = data[i * chunks[0]:(i + 1) * chunks[0]]
-        if values.flat[0] == fill and values.flat[-1] == fill and not np.any(values != fill):
-            with contextlib.suppress(FileNotFoundError):            # only fill values: Zarr stores nothing
-                os.remove(path)
-            continue
-        part = flat[i * size:(i + 1) * size]
-        _write_chunk_file(path, part, google_crc32c.value(part).to_bytes(4, "little"))
+    for i in range(l0 // chunks[0], -(-l1 // chunks[0])):
+        for j in range(r0 // chunks[1], -(-r1 // chunks[1])):
+            path = os.path.join(local, *array.metadata.encode_chunk_key((i, j, *rest)).split("/"))
+            values = data[i * chunks[0] - l0:(i + 1) * chunks[0] - l0, j * chunks[1] - r0:(j + 1) * chunks[1] - r0]
+            if _only_fill(values, fill):
+                with contextlib.suppress(FileNotFoundError):        # only fill values: Zarr stores nothing
+                    os.remove(path)
+                continue
+            if (values.shape != tuple(chunks) or not values.flags.c_contiguous
+                    or values.ctypes.data % DIRECT_BLOCK):
+                staged = reused_buffer("whole-chunk", tuple(chunks), data.dtype)
+                if values.shape != tuple(chunks):
+                    staged.fill(fill)                                # the edge chunk, padded as Zarr stores it
+                staged[:values.shape[0], :values.shape[1]] = values
+                values = staged
+            part = values.reshape(-1).view(np.uint8)
+            _write_chunk_file(path, part, google_crc32c.value(part).to_bytes(4, "little"))
+
+
+def _only_fill(values: np.ndarray, fill: Any) -> bool:
+    """Whether a chunk holds only the fill value, as Zarr decides: a float zero by its bits (a chunk of -0.0
+    is stored), any other value by ``==``; the first and last values are looked at before all of them."""
+    if values.dtype.kind == "f" and fill == 0:
+        values, fill = values.view(f"u{values.itemsize}"), np.asarray(fill, values.dtype).view(f"u{values.itemsize}")
+    return bool(values.flat[0] == fill and values.flat[-1] == fill and not np.any(values != fill))
 
 
 #: Block size and address alignment of an ``O_DIRECT`` write (the logical block size of common disks).

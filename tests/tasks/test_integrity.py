@@ -290,11 +290,12 @@ def _direct_io_works(folder: Path) -> bool:
         os.remove(folder / "probe")
 
 
-def test_whole_chunk_rows_are_written_as_zarr_writes_them(tmp_path, monkeypatch):
-    """A band of whole chunks written from a page-aligned buffer gives the chunk files Zarr writes, byte for
-    byte: a chunk of fill values only is not stored and its old file is removed, as Zarr does; the first
-    chunk's aligned 512-byte block goes past the page cache where the file system takes O_DIRECT. Rows
-    that are not one whole chunk row go through Zarr."""
+def test_whole_chunks_are_written_as_zarr_writes_them(tmp_path, monkeypatch):
+    """Blocks of whole chunks give the chunk files Zarr writes, byte for byte: bands of one chunk row from a
+    page-aligned buffer, the padded edge band, a view's rows across every chunk row (copied per chunk), light/view
+    parts of a band; a chunk of fill values only is not stored and its old file is removed, as Zarr does. The
+    aligned 512-byte blocks go past the page cache where the file system takes O_DIRECT. A block that is not
+    whole chunks is refused, naming it."""
     import fcntl
     import os
 
@@ -311,24 +312,26 @@ def test_whole_chunk_rows_are_written_as_zarr_writes_them(tmp_path, monkeypatch)
         return original(fd, cmd, *args)
 
     monkeypatch.setattr(fcntl, "fcntl", spied)
-    for start, stop in ((0, 4), (4, 8), (1, 5), (8, 10)):
-        band = prefaulted(data[:, start:stop].size, np.float32).reshape(12, stop - start, 5, 3)
-        band[...] = data[:, start:stop]
-        by_zarr[:, start:stop] = band
-        integrity.write_chunk_rows(ours, start, stop, band)
+
+    def both(lv: slice, rows: slice, values: np.ndarray) -> None:
+        block = prefaulted(values.size, np.float32).reshape(values.shape)
+        block[...] = values
+        by_zarr[lv, rows] = block
+        integrity.write_whole_chunks(ours, lv, rows, block)
+        assert _chunk_bytes(tmp_path / "ours.zarr") == _chunk_bytes(tmp_path / "zarr.zarr"), (lv, rows)
+
+    for start, stop in ((0, 4), (4, 8), (8, 10)):                   # bands; the last is the padded edge
+        both(slice(None), slice(start, stop), data[:, start:stop])
     assert not (tmp_path / "ours.zarr" / "btf" / "c" / "1" / "0" / "0" / "0").exists()
-    assert _chunk_bytes(tmp_path / "ours.zarr") == _chunk_bytes(tmp_path / "zarr.zarr")
     np.testing.assert_array_equal(ours[...], data)
+    both(slice(4, 8), slice(None), -data[4:8])                     # a view: every chunk row, the old fill chunk
+    for lv in (slice(8, 12), slice(0, 8)):                          # a band in light/view parts
+        both(lv, slice(4, 8), data[lv, 4:8] + 1)
     assert any(direct) == _direct_io_works(tmp_path), direct
     assert not list((tmp_path / "ours.zarr").rglob("*.partial"))
-    band = prefaulted(12 * 4 * 5 * 3, np.float32).reshape(12, 4, 5, 3)   # in parts of whole chunks
-    band[...] = -data[:, 4:8]
-    by_zarr[:, 4:8] = band
-    for lv in (slice(8, 12), slice(0, 8)):
-        integrity.write_chunk_rows(ours, 4, 8, band, lv)
-    assert _chunk_bytes(tmp_path / "ours.zarr") == _chunk_bytes(tmp_path / "zarr.zarr")
-    with pytest.raises(ValueError, match="light/view rows 2:8 are not whole chunks of 4"):
-        integrity.write_chunk_rows(ours, 4, 8, band, slice(2, 8))
+    for lv, rows in ((slice(None), slice(1, 5)), (slice(2, 8), slice(4, 8))):
+        with pytest.raises(ValueError, match=r"btf\[\d+:\d+, \d+:\d+\] is not a block of whole chunks \(4, 4\)"):
+            integrity.write_whole_chunks(ours, lv, rows, np.ones((12, 4, 5, 3), np.float32))
 
 
 def test_a_failed_chunk_write_leaves_the_old_file_and_no_partial_one(tmp_path, monkeypatch):
@@ -348,7 +351,7 @@ def test_a_failed_chunk_write_leaves_the_old_file_and_no_partial_one(tmp_path, m
 
     monkeypatch.setattr(os, "pwrite", full)
     with pytest.raises(OSError, match="No space left"):
-        integrity.write_chunk_rows(array, 0, 4, band)
+        integrity.write_whole_chunks(array, slice(None), slice(0, 4), band)
     assert _chunk_bytes(tmp_path / "b.zarr") == before
 
 
