@@ -13,6 +13,9 @@ per process; ``tasks/__init__.py`` imports it, so every process that imports a
 it finds the chunk and raises :class:`CorruptChunkError`, which names the
 store, the array and the chunk index, whatever stage or function read it.
 
+:func:`read_chunk_rows` and :func:`write_whole_chunks` read and write the chunk files of such an array
+directly where Zarr adds only copies (the writes past the page cache), with the same bytes and checks.
+
 :func:`verify_store` reads every chunk of every array of a store, one chunk at
 a time, and lists corrupt, truncated and missing chunks (``btf validate
 --deep``). A chunk is *missing* when the store's own resume markers
