@@ -5,7 +5,7 @@ asks the kernel for huge pages (``madvise``), whose first touch, with the kernel
 ``madvise``, can wait for memory compaction (1.07 s against 0.16-0.22 s for 522 MB; docs/benchmarks.md,
 2026-12-05). :func:`prefaulted` maps all pages at once; :func:`reused_buffer` keeps one such buffer per
 name and worker thread, so that a worker's views, bands or blocks share it. Both are page-aligned, which
-:func:`tasks.integrity.write_whole_chunks` needs to write chunks past the page cache.
+:func:`tasks.integrity.write_chunks_directly` needs to write chunks past the page cache.
 """
 
 from __future__ import annotations

@@ -55,7 +55,6 @@ from btfcore.model.colour import REC709_LUMA
 from tasks.buffers import reused_buffer
 from tasks.compute import run_all
 from tasks.faults import kill_point
-from tasks.integrity import write_whole_chunks
 from tasks.measurement import (
     ingest_measurement,
     measurement_error_against_truth,
@@ -313,7 +312,7 @@ def _write_view(out_path: str, capture: CaptureStore, t: int, c: int, textures: 
     group = BtfStore(out_path, "r+").group
     n_leds = capture.n_leds
     row = (t * capture.n_cam + c) * n_leds
-    write_whole_chunks(group["btf"], slice(row, row + n_leds), slice(None), textures)
+    write_chunk_aligned(group["btf"], slice(row, row + n_leds), textures)
     if roi is not None:
         write_chunk_aligned(group["roi"], slice(row, row + n_leds), roi)
     group["valid_fraction"][t, c] = valid

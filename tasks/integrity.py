@@ -13,7 +13,7 @@ per process; ``tasks/__init__.py`` imports it, so every process that imports a
 it finds the chunk and raises :class:`CorruptChunkError`, which names the
 store, the array and the chunk index, whatever stage or function read it.
 
-:func:`read_chunk_rows` and :func:`write_whole_chunks` read and write the chunk files of such an array
+:func:`read_chunk_rows` and :func:`write_chunks_directly` read and write the chunk files of such an array
 directly where Zarr adds only copies (the writes past the page cache), with the same bytes and checks.
 
 :func:`verify_store` reads every chunk of every array of a store, one chunk at
@@ -446,42 +446,32 @@ def _plain_chunks(array: zarr.Array, dtype: np.dtype) -> str | None:
     return local if ok else None
 
 
-def write_whole_chunks(array: zarr.Array, lv: slice, rows: slice, data: np.ndarray) -> None:
-    """``array[lv, rows] = data`` for a block of whole chunks (edges at chunk boundaries or the array's end),
-    each chunk file written past the page cache where the file system allows (the mirror of
-    :func:`read_chunk_rows`).
+def write_chunks_directly(array: zarr.Array, block: tuple[slice, ...], data: np.ndarray) -> bool:
+    """Write ``data`` into ``array[block]``, a block of whole chunks (checked by
+    :func:`tasks.stores.common.write_chunk_aligned`, the one caller), as chunk files past the page cache;
+    False, with nothing written, where Zarr has to write it.
 
-    Where Zarr is not needed (:func:`_plain_chunks`), each chunk's bytes and their CRC32C go to a temporary
-    file renamed into place, as Zarr's local store writes them: the same bytes, an edge chunk padded with
-    the fill value, and a chunk that holds only the fill value not stored (an old file of it removed), as
-    Zarr does without ``write_empty_chunks``. A chunk's values are written from ``data`` itself where they
-    are contiguous there and start at a 512-byte aligned address (a :func:`tasks.buffers.reused_buffer`
-    is page-aligned), else from a page-aligned per-thread copy. Their whole 512-byte blocks go with
-    ``O_DIRECT``: on the 2-core VM a buffered write of 522 MB into fresh page-cache pages cost 1.26 s of
-    kernel CPU, a direct one 0.015 s at the disk's rate (docs/benchmarks.md, 2026-12-05). A file system
-    without ``O_DIRECT`` gets the same files buffered; any other layout is written through Zarr.
-
-    Raises
-    ------
-    ValueError
-        Where the block does not start and end at chunk boundaries.
+    Where Zarr is not needed (:func:`_plain_chunks`, the block spanning the axes after the first two), each
+    chunk's bytes and their CRC32C go to a temporary file renamed into place, as Zarr's local store writes
+    them: the same bytes, an edge chunk padded with the fill value, and a chunk that holds only the fill
+    value not stored (an old file of it removed), as Zarr does without ``write_empty_chunks``. A chunk's
+    values are written from ``data`` itself where they are contiguous there and start at a 512-byte aligned
+    address (a :func:`tasks.buffers.reused_buffer` is page-aligned), else from a page-aligned per-thread
+    copy. Their whole 512-byte blocks go with ``O_DIRECT``: on the 2-core VM a buffered write of 522 MB into
+    fresh page-cache pages cost 1.26 s of kernel CPU, a direct one 0.015 s at the disk's rate
+    (docs/benchmarks.md, 2026-12-05). A file system without ``O_DIRECT`` gets the same files buffered.
     """
     import google_crc32c
 
     from tasks.buffers import reused_buffer
 
-    shape, chunks = array.shape, array.chunks
-    (l0, l1, _), (r0, r1, _) = lv.indices(shape[0]), rows.indices(shape[1])
-    for axis, (a, b) in enumerate(((l0, l1), (r0, r1))):
-        if a % chunks[axis] or (b % chunks[axis] and b != shape[axis]) or b <= a:
-            raise ValueError(f"{array.path}[{l0}:{l1}, {r0}:{r1}] is not a block of whole chunks "
-                             f"{tuple(chunks[:2])} on axis {axis}")
+    shape, chunks, fill = array.shape, array.chunks, array.fill_value
     local = _plain_chunks(array, data.dtype)
-    fill = array.fill_value
-    if (local is None or data.shape != (l1 - l0, r1 - r0, *shape[2:]) or array.async_array.config.write_empty_chunks
-            or fill is None or not np.isfinite(fill)):
-        array[l0:l1, r0:r1] = data
-        return
+    if (local is None or data.shape != tuple(s.stop - s.start for s in block)
+            or any(s.stop - s.start != n for s, n in zip(block[2:], shape[2:]))
+            or array.async_array.config.write_empty_chunks or fill is None or not np.isfinite(fill)):
+        return False
+    (l0, l1), (r0, r1) = ((s.start, s.stop) for s in block[:2])
     rest = (0,) * (array.ndim - 2)
     for i in range(l0 // chunks[0], -(-l1 // chunks[0])):
         for j in range(r0 // chunks[1], -(-r1 // chunks[1])):
@@ -500,6 +490,7 @@ def write_whole_chunks(array: zarr.Array, lv: slice, rows: slice, data: np.ndarr
                 values = staged
             part = values.reshape(-1).view(np.uint8)
             _write_chunk_file(path, part, google_crc32c.value(part).to_bytes(4, "little"))
+    return True
 
 
 def _only_fill(values: np.ndarray, fill: Any) -> bool:

@@ -70,11 +70,11 @@ from btfcore.acquisition.reconstruct import (
 from tasks.compute import run_all
 from tasks.faults import kill_point
 from tasks.buffers import reused_buffer
-from tasks.integrity import read_chunk_rows, write_whole_chunks
+from tasks.integrity import read_chunk_rows
 from tasks.staging import commit_staged, finish_interrupted_commit, staging_path, store_attrs
 from tasks.stores.btf import LV_ORDER, SCHEMA_NAME, SCHEMA_VERSION, BtfStore, create_btf_store, open_btf_store
 from tasks.stores.btf import band_rows as btf_band_rows
-from tasks.stores.common import json_key
+from tasks.stores.common import json_key, write_chunk_aligned
 from tasks.stores.measurement import SCHEMA_NAME as MEASUREMENT_SCHEMA
 from tasks.stores.measurement import open_measurement_store, read_G
 
@@ -465,7 +465,7 @@ def reconstruct_band(in_path: str, out_path: str, ops: dict[str, SolveOperator],
         out = reconstruct_chunk(ops, measured, out_rows=(r0, r1) if p is not None else None, height=h,
                                 correction=correction)
         _check_output(out, in_path, r0, r1)
-        write_whole_chunks(btf, slice(None), slice(r0, r1), out.reshape(shape))
+        write_chunk_aligned(btf, (slice(None), slice(r0, r1)), out.reshape(shape))
     else:               # a worker thread's bands share one output buffer; one part is written while the next is solved
         buffer = reused_buffer("reconstruct-band", (ops["rgb"].n_out, measured[0].size), np.float32)
         part_rows = -(-btf.shape[0] // btf.chunks[0] // WRITE_PARTS) * btf.chunks[0]          # whole chunks
@@ -474,7 +474,8 @@ def reconstruct_band(in_path: str, out_path: str, ops: dict[str, SolveOperator],
 
             def write(rows: slice) -> None:
                 _check_output(buffer[rows], in_path, r0, r1)
-                writes.append(writer.submit(write_whole_chunks, btf, rows, slice(r0, r1), buffer.reshape(shape)[rows]))
+                part = buffer.reshape(shape)[rows]
+                writes.append(writer.submit(write_chunk_aligned, btf, (rows, slice(r0, r1)), part))
 
             reconstruct_chunk(ops, measured, correction=correction, out=buffer, part_rows=part_rows, on_rows=write)
             for done in writes:

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 import zarr
 
-from tasks.integrity import CorruptChunkError
+from tasks.integrity import CorruptChunkError, write_chunks_directly
 
 #: How many offending indices a problem lists before summarising.
 MAX_LISTED = 10
@@ -201,7 +201,9 @@ def write_chunk_aligned(array: zarr.Array, selection: Any, data: np.ndarray) -> 
 
     Parallel writers that share a chunk silently lose data (each rewrites the
     whole chunk from what it read), so every write must cover whole chunks
-    (docs/architecture.md, "Storage contract").
+    (docs/architecture.md, "Storage contract"). Where Zarr adds only copies,
+    the chunk files are written directly, past the page cache
+    (:func:`tasks.integrity.write_chunks_directly`).
 
     Parameters
     ----------
@@ -235,7 +237,8 @@ def write_chunk_aligned(array: zarr.Array, selection: Any, data: np.ndarray) -> 
         except ValueError as e:
             raise ValueError(
                 f"data of shape {data.shape} does not fit the block of shape {natural}") from e
-    array[sel] = data
+    if not write_chunks_directly(array, sel, data):
+        array[sel] = data
 
 
 def read_whole(name: str, array: zarr.Array, problems: list[Problem]) -> np.ndarray | None:

@@ -17,7 +17,8 @@ import zarr
 from flows.cli import EXIT_BAD_INPUT, main
 from tasks import integrity
 from tasks.integrity import CHECKSUM_NOTE, CorruptChunkError, create_array, has_checksums, verify_store
-from tasks.stores import CaptureStore, create_capture_store, open_capture_store, validate_capture_store
+from tasks.stores import (CaptureStore, create_capture_store, open_capture_store, validate_capture_store,
+                          write_chunk_aligned)
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -317,7 +318,7 @@ def test_whole_chunks_are_written_as_zarr_writes_them(tmp_path, monkeypatch):
         block = prefaulted(values.size, np.float32).reshape(values.shape)
         block[...] = values
         by_zarr[lv, rows] = block
-        integrity.write_whole_chunks(ours, lv, rows, block)
+        write_chunk_aligned(ours, (lv, rows), block)
         assert _chunk_bytes(tmp_path / "ours.zarr") == _chunk_bytes(tmp_path / "zarr.zarr"), (lv, rows)
 
     for start, stop in ((0, 4), (4, 8), (8, 10)):                   # bands; the last is the padded edge
@@ -330,8 +331,8 @@ def test_whole_chunks_are_written_as_zarr_writes_them(tmp_path, monkeypatch):
     assert any(direct) == _direct_io_works(tmp_path), direct
     assert not list((tmp_path / "ours.zarr").rglob("*.partial"))
     for lv, rows in ((slice(None), slice(1, 5)), (slice(2, 8), slice(4, 8))):
-        with pytest.raises(ValueError, match=r"btf\[\d+:\d+, \d+:\d+\] is not a block of whole chunks \(4, 4\)"):
-            integrity.write_whole_chunks(ours, lv, rows, np.ones((12, 4, 5, 3), np.float32))
+        with pytest.raises(ValueError, match=r"btf\[.*\] is not chunk-aligned on axis [01]"):
+            write_chunk_aligned(ours, (lv, rows), np.ones((12, 4, 5, 3), np.float32))
 
 
 def test_a_failed_chunk_write_leaves_the_old_file_and_no_partial_one(tmp_path, monkeypatch):
@@ -351,7 +352,7 @@ def test_a_failed_chunk_write_leaves_the_old_file_and_no_partial_one(tmp_path, m
 
     monkeypatch.setattr(os, "pwrite", full)
     with pytest.raises(OSError, match="No space left"):
-        integrity.write_whole_chunks(array, slice(None), slice(0, 4), band)
+        write_chunk_aligned(array, (slice(None), slice(0, 4)), band)
     assert _chunk_bytes(tmp_path / "b.zarr") == before
 
 
