@@ -161,3 +161,23 @@ def test_one_exposure_per_view_keeps_the_patterns_below_saturation():
     assert own.objective < expected_error(single, other.patterns).objective
     assert own.objective == pytest.approx(expected_error(single, own.patterns).objective, rel=1e-9)
     assert np.all(np.diff(own.history[1:]) <= 1e-9 * own.history[0])               # refinement never worse
+
+
+@pytest.mark.parametrize("single_exposure", [False, True])
+@pytest.mark.parametrize("n_others", [0, 3])
+def test_a_flip_scan_scores_every_flipped_pattern_as_woodbury_does(single_exposure, n_others):
+    """The terms a scan shares (`_FlipTerms`) give the gains `_candidate_gains` gives each
+    flipped pattern formed explicitly; a flip that would empty the pattern is -inf."""
+    from btfcore.acquisition.illumination_patterns import _candidate_gains, _flip_scan, _others
+
+    model = _model(k=6, seed=4, single_exposure=single_exposure)
+    rng = np.random.default_rng(5)
+    others = (rng.random((n_others, model.n_leds)) < 0.4).astype(np.uint8)
+    others[:, 0] = 1                                                            # none empty
+    o, G = _others(model, others), model.gram
+    for pattern in ((rng.random(model.n_leds) < 0.5).astype(np.uint8), np.eye(model.n_leds, dtype=np.uint8)[3]):
+        flipped = np.repeat(pattern[None], model.n_leds, axis=0) ^ np.eye(model.n_leds, dtype=np.uint8)
+        full = flipped.sum(axis=1) > 0
+        expected = np.full(model.n_leds, -np.inf)
+        expected[full] = _candidate_gains(model, o, G, flipped[full])
+        np.testing.assert_allclose(_flip_scan(model, o, G, pattern), expected, rtol=1e-9)
