@@ -56,6 +56,7 @@ from btfcore.acquisition.reconstruct import abtf_halo
 from btfcore.acquisition.strategies import Geometry, Strategy, StrategyBases, build_strategies, strategy_names
 from btfcore.simulate.camera import sample_corners_px
 from btfcore.simulate.nonideal import DomeNonIdeality
+from tasks.buffers import heap_arrays
 from tasks.compute import Progress, run_all, wait_all
 from tasks.evaluate_acquisition.config import EvaluationConfig
 from tasks.evaluate_acquisition.reuse import finished_store, read_record, write_record
@@ -127,6 +128,7 @@ def band_maxima(path: str, r0: int, r1: int, patterns: np.ndarray, geometry: Geo
     return image_maxima(_read_rows(path, r0, r1), patterns)
 
 
+@heap_arrays()
 def band_variance(path: str, r0: int, r1: int, gains: tuple[np.ndarray, np.ndarray], patterns: np.ndarray,
                   geometry: Geometry, noise: SensorNoise, seed: Sequence[int],
                   dome: tuple[DomeDraws, tuple[SensorNoise, SensorNoise]] | None = None) -> Moments:
@@ -142,6 +144,7 @@ def band_variance(path: str, r0: int, r1: int, gains: tuple[np.ndarray, np.ndarr
                             geometry, dome[0], seed)
 
 
+@heap_arrays()
 def evaluate_band(path: str, r0: int, r1: int, strategies: list[Strategy], gains: tuple[np.ndarray, np.ndarray],
                   patterns: np.ndarray, geometry: Geometry, noise: SensorNoise, seed: Sequence[int],
                   write: dict[str, str] | None = None, floors: bool = True,
