@@ -41,6 +41,7 @@ import numpy as np
 from btfcore.metrics import mpsnr, mre, mrmse
 from btfcore.superres.regions import rectify_regions, scale_homography, upsample_regions
 from btfcore.superres.scaling import area_downsample
+from tasks.buffers import heap_arrays
 from tasks.faults import kill_point
 from tasks.ingest import led_scale
 from tasks.report import write_json
@@ -208,6 +209,7 @@ def validation_material(btf_path: str, alphas: list[float], dong_rank: int, mode
     return result
 
 
+@heap_arrays()
 def test_material(btf_path: str, capture_path: str, others: str | None, normalisation: str, alpha: float,
                   dong_rank: int, device_json: dict[str, Any], figures_dir: str, models_dir: str,
                   training: dict[str, Any]) -> dict[str, Any]:

@@ -42,6 +42,7 @@ import numpy as np
 
 from btfcore.capture.view_chain import IngestSettings, process_view, view_window
 from btfcore.simulate.sensor import SensorModel, dark_frames, expose
+from tasks.buffers import heap_arrays
 from tasks.compute import Progress, run_all
 from tasks.ingest import errors_against_truth, view_chain_arguments
 from tasks.simulate import SimulationConfig, camera_dark_map, pattern_frames
@@ -91,6 +92,7 @@ def floor_textures(capture: CaptureStore, config: SimulationConfig, t: int, c: i
     return textures
 
 
+@heap_arrays()
 def material_floors(capture_path: str, config: SimulationConfig,
                     settings: IngestSettings = IngestSettings()) -> dict[str, dict[str, float]]:
     """Every floor of one material: ``{sensor: errors}``, the errors of

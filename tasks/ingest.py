@@ -52,7 +52,7 @@ import numpy as np
 from btfcore.capture.demultiplex import demultiplex_operator
 from btfcore.capture.view_chain import IngestSettings, lv_directions, process_view, view_window
 from btfcore.model.colour import REC709_LUMA
-from tasks.buffers import reused_buffer
+from tasks.buffers import heap_arrays, reused_buffer
 from tasks.compute import run_all
 from tasks.faults import kill_point
 from tasks.measurement import (
@@ -257,6 +257,7 @@ def create_ingest_store(path: str | os.PathLike, capture: CaptureStore, settings
         valid_fraction_shape=(n_turn, n_cam, n_illum), roi_shape=capture.roi_shape if keep_roi else None)
 
 
+@heap_arrays()
 def ingest_view(capture_path: str, meta: CaptureMetadata, out_path: str, settings: IngestSettings, t: int, c: int,
                 calibration: Calibration | None = None, keep_roi: bool = False) -> tuple[int, int]:
     """Process one view of the capture and write its chunk of the BTF store.

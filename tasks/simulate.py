@@ -39,6 +39,7 @@ from btfcore.simulate.nonideal import (
     shift_images,
 )
 from btfcore.simulate.sensor import choose_bracket, dark_current_map, dark_frames, expose
+from tasks.buffers import heap_arrays
 from tasks.stores import (
     CaptureMetadata,
     CaptureStore,
@@ -396,6 +397,7 @@ def camera_dark_map(device: Device, camera: int) -> np.ndarray:
     return dark_current_map(device.sensor, device.roi_shape, rng)
 
 
+@heap_arrays()
 def simulate_view(store_path: str, config: SimulationConfig, spec: MaterialSpec, turntable: int,
                   camera: int, _prepared: Any = None) -> tuple[int, int]:
     """Render, project and expose every illumination of one view; write its chunks."""

@@ -18,6 +18,7 @@ import numpy as np
 import zarr
 
 from btfcore.dome import Device
+from tasks.buffers import heap_arrays
 from tasks.compute import Progress, wait_all
 from tasks.evaluate_acquisition.config import TRUTH_KIND, EvaluationConfig, TruthSpec, truth_specs
 from tasks.faults import kill_point
@@ -53,6 +54,7 @@ def prepare_truth_material(spec: TruthSpec, config: EvaluationConfig) -> tuple[A
     return maps, horizon_map(maps.height)
 
 
+@heap_arrays()
 def render_truth_view(path: str, config: EvaluationConfig, prepared: tuple[Any, np.ndarray], t: int, c: int) -> int:
     """Render the truth of one view (all lights) at 2x, box-filter it and write its chunk."""
     from btfcore.simulate.render import downsample2, render_view
