@@ -38,7 +38,8 @@ from flows.server import LOOPBACK, RuntimeUnavailable, running_server  # noqa: F
 #: core). The heap keeps up to 8 MiB free at its top (trim threshold): trimming
 #: at 64 KiB gave every small array fresh pages, which cost the acquisition
 #: evaluation a third of its time in page faults (sys time 2.0 s vs 0.5 s per
-#: material, docs/benchmarks.md).
+#: material, docs/benchmarks.md). Tasks made of many arrays above 4 MiB raise the
+#: threshold while they run (:func:`tasks.buffers.heap_arrays`).
 WORKER_ENVIRON = {
     "OMP_NUM_THREADS": "1",
     "MKL_NUM_THREADS": "1",
