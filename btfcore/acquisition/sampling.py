@@ -280,7 +280,7 @@ def _kappa_svd(Y: np.ndarray) -> float:
 
 def _kappa_gram(G: np.ndarray) -> float | None:
     """kappa from the eigenvalues of the Gram matrix, or None when that is not accurate enough."""
-    return _kappa_from(linalg.eigvalsh(G, check_finite=False, driver="evd"))
+    return _kappa_from(np.linalg.eigvalsh(G))           # LAPACK syevd, as scipy's driver="evd", with less around it
 
 
 def _kappa_from(w: np.ndarray) -> float | None:
