@@ -13,8 +13,9 @@ per process; ``tasks/__init__.py`` imports it, so every process that imports a
 it finds the chunk and raises :class:`CorruptChunkError`, which names the
 store, the array and the chunk index, whatever stage or function read it.
 
-:func:`read_chunk_rows` and :func:`write_chunks_directly` read and write the chunk files of such an array
-directly where Zarr adds only copies (the writes past the page cache), with the same bytes and checks.
+:func:`read_chunk_rows`, :func:`read_chunk_windows` and :func:`write_chunks_directly` read and write the
+chunk files of such an array directly where Zarr adds only copies (the writes past the page cache), with the
+same bytes and checks.
 
 :func:`verify_store` reads every chunk of every array of a store, one chunk at
 a time, and lists corrupt, truncated and missing chunks (``btf validate
@@ -67,6 +68,7 @@ __all__ = [
     "nonfinite_problem",
     "open_any_store",
     "read_chunk_rows",
+    "read_chunk_windows",
     "rerun_hint",
     "store_kind",
     "stored_chunks",
@@ -397,8 +399,6 @@ def read_chunk_rows(array: zarr.Array, start: int, stop: int, out: np.ndarray) -
     missing chunk or a checksum that does not match included, is read through Zarr, which returns fill
     values or raises :class:`CorruptChunkError` naming the chunk, as every other read does.
     """
-    import google_crc32c
-
     shape, chunks = array.shape, array.chunks
     local = _plain_chunks(array, out.dtype)
     n_groups = shape[0] // chunks[0]
@@ -415,14 +415,7 @@ def read_chunk_rows(array: zarr.Array, start: int, stop: int, out: np.ndarray) -
         for i in range(n_groups):
             key = array.metadata.encode_chunk_key((i, row, *rest))
             part = flat[i * size:(i + 1) * size] if whole else scratch
-            try:
-                with open(os.path.join(local, *key.split("/")), "rb", buffering=0) as f:
-                    if os.fstat(f.fileno()).st_size != size + 4 or f.readinto(memoryview(part)) != size:
-                        break
-                    stored = int.from_bytes(f.read(4), "little")
-            except OSError:
-                break
-            if google_crc32c.value(part) != stored:
+            if not _read_chunk_file(os.path.join(local, *key.split("/")), part):
                 break
             if not whole:
                 chunk = part.view(out.dtype).reshape(chunks)
@@ -433,17 +426,62 @@ def read_chunk_rows(array: zarr.Array, start: int, stop: int, out: np.ndarray) -
                               out=default_buffer_prototype().nd_buffer.from_numpy_array(out))
 
 
-def _plain_chunks(array: zarr.Array, dtype: np.dtype) -> str | None:
-    """The local folder of ``array`` where its chunk files can be read or written without Zarr: chunked along
-    its first two axes only, uncompressed with a CRC32C checksum (what :func:`create_array` makes),
-    little-endian, on a local store, for values of ``dtype`` (its native dtype); None otherwise."""
-    shape, chunks = array.shape, array.chunks
+def _plain_codec(array: zarr.Array, dtype: np.dtype) -> str | None:
+    """The local folder of ``array`` where its chunk files are plain: uncompressed with a CRC32C checksum
+    (what :func:`create_array` makes), little-endian, on a local store, for values of ``dtype`` (its native
+    dtype); None otherwise."""
     local = _local_root(array)
-    ok = (local is not None and array.ndim >= 2 and tuple(chunks[2:]) == tuple(shape[2:])
-          and not array.filters and len(array.compressors) == 1 and has_checksums(array)
+    ok = (local is not None and not array.filters and len(array.compressors) == 1 and has_checksums(array)
           and getattr(array.serializer, "endian", None) is not None and array.serializer.endian.value == "little"
           and dtype == _native_dtype(array.dtype) and dtype.byteorder in ("=", "<", "|"))
     return local if ok else None
+
+
+def _plain_chunks(array: zarr.Array, dtype: np.dtype) -> str | None:
+    """The local folder of ``array`` where its chunk files can be read or written without Zarr: plain
+    (:func:`_plain_codec`) and chunked along its first two axes only; None otherwise."""
+    local = _plain_codec(array, dtype)
+    ok = local is not None and array.ndim >= 2 and tuple(array.chunks[2:]) == tuple(array.shape[2:])
+    return local if ok else None
+
+
+def _read_chunk_file(path: str, part: np.ndarray) -> bool:
+    """Read a plain chunk file into ``part`` (contiguous ``uint8``): whether its size and CRC32C match."""
+    import google_crc32c
+
+    size = part.nbytes
+    try:
+        with open(path, "rb", buffering=0) as f:
+            if os.fstat(f.fileno()).st_size != size + 4 or f.readinto(memoryview(part)) != size:
+                return False
+            stored = int.from_bytes(f.read(4), "little")
+    except OSError:
+        return False
+    return google_crc32c.value(part) == stored
+
+
+def read_chunk_windows(array: zarr.Array, lead: tuple[int, ...], window: tuple[slice, ...], out: np.ndarray) -> None:
+    """``out[...] = array[(*lead, slice(None), *window)]`` for an array with one chunk per index of its first
+    ``len(lead) + 1`` axes and whole along the rest (a capture's ``raw``: one chunk per view and illumination).
+    Plain chunk files (:func:`_plain_codec`) are read into a scratch buffer, checked there and their window
+    copied out (docs/benchmarks.md, 2026-12-05); anything else, a missing or corrupt chunk included, through
+    Zarr, as :func:`read_chunk_rows`."""
+    shape, chunks, n = array.shape, array.chunks, len(lead) + 1
+    local = _plain_codec(array, out.dtype)
+    sizes = tuple(len(range(*w.indices(d))) for w, d in zip(window, shape[n:]))
+    if (local is not None and tuple(chunks[:n]) == (1,) * n and tuple(chunks[n:]) == tuple(shape[n:])
+            and len(window) == len(shape) - n and out.shape == (shape[n - 1], *sizes)):
+        scratch = np.empty(int(np.prod(chunks)) * out.dtype.itemsize, np.uint8)
+        chunk = scratch.view(out.dtype).reshape(chunks[n:])
+        for i in range(shape[n - 1]):
+            key = array.metadata.encode_chunk_key((*lead, i) + (0,) * (len(shape) - n))
+            if not _read_chunk_file(os.path.join(local, *key.split("/")), scratch):
+                break
+            out[i] = chunk[window]
+        else:
+            return
+    array.get_basic_selection((*lead, slice(None), *window),
+                              out=default_buffer_prototype().nd_buffer.from_numpy_array(out))
 
 
 def write_chunks_directly(array: zarr.Array, block: tuple[slice, ...], data: np.ndarray) -> bool:

@@ -14,10 +14,10 @@ from typing import Any
 
 import numpy as np
 import zarr
-from zarr.core.buffer import default_buffer_prototype
 
 from tasks.faults import kill_point
-from tasks.integrity import CorruptChunkError, chunk_files_exist, create_array, missing_problem, rerun_hint
+from tasks.integrity import (CorruptChunkError, chunk_files_exist, create_array, missing_problem, read_chunk_windows,
+                             rerun_hint)
 from tasks.stores.capture_schema import (
     META_ARRAY_FIELDS,
     ROTATION_TOL,
@@ -300,10 +300,10 @@ class CaptureStore:
         """
         try:
             if illuminations is None:
-                selection = (t, c, slice(None), slice(None), window[0], window[1])
                 if out is None:
-                    return self.raw.get_basic_selection(selection)
-                self.raw.get_basic_selection(selection, out=default_buffer_prototype().nd_buffer.from_numpy_array(out))
+                    sizes = [len(range(*w.indices(d))) for w, d in zip(window, self.raw.shape[4:])]
+                    out = np.empty((self.raw.shape[2], self.raw.shape[3], *sizes), self.raw.dtype)
+                read_chunk_windows(self.raw, (t, c), (slice(None), window[0], window[1]), out)
                 return out
             return np.stack([self.raw[t, c, int(i), :, window[0], window[1]] for i in illuminations])
         except (OSError, MemoryError, CorruptChunkError):

@@ -376,3 +376,32 @@ def test_a_damaged_or_missing_chunk_in_a_whole_band_is_left_to_zarr(tmp_path, ch
         integrity.read_chunk_rows(array, 5, 7, sub)
     integrity.read_chunk_rows(array, 1, 3, sub)
     assert not sub[8:].any() and sub[:8].all()
+
+
+def _raw_like(path: Path) -> zarr.Array:
+    """A capture-raw-like array: one uint16 chunk of (exposures, rows, cols) per (view, illumination)."""
+    data = np.random.default_rng(9).integers(0, 4096, (1, 2, 5, 3, 8, 9)).astype(np.uint16)
+    group = zarr.open_group(str(path), mode="w", zarr_format=3)
+    array = create_array(group, "raw", shape=data.shape, chunks=(1, 1, 1, 3, 8, 9), dtype="uint16", fill_value=0)
+    array[...] = data
+    return array
+
+
+def test_chunk_windows_are_read_without_zarr_and_damage_is_left_to_it(tmp_path, monkeypatch, chunk_files):
+    """Every illumination's window of one view straight from the chunk files, equal to Zarr's read; a flipped
+    byte is named as any read names it, a missing chunk reads as fill values (both through Zarr)."""
+    array = _raw_like(tmp_path / "c.zarr")
+    calls = _reads(monkeypatch)
+    window = (slice(None), slice(2, 7), slice(1, 9))
+    for view in (0, 1):
+        out = np.zeros((5, 3, 5, 8), np.uint16)
+        integrity.read_chunk_windows(array, (0, view), window, out)
+        np.testing.assert_array_equal(out, array[(0, view, slice(None), *window)])
+    assert not calls                                                    # no read through Zarr
+    chunk_files.flip_byte(chunk_files.path(tmp_path / "c.zarr", "raw", (0, 1, 3, 0, 0, 0)), offset=7)
+    with pytest.raises(CorruptChunkError, match=r"array raw, chunk \(0, 1, 3, 0, 0, 0\): checksum mismatch"):
+        integrity.read_chunk_windows(array, (0, 1), window, out)
+    chunk_files.path(tmp_path / "c.zarr", "raw", (0, 1, 3, 0, 0, 0)).unlink()
+    integrity.read_chunk_windows(array, (0, 1), window, out)
+    assert calls and not out[3].any()
+    np.testing.assert_array_equal(out[[0, 1, 2, 4]], array[(0, 1, [0, 1, 2, 4], *window)])
