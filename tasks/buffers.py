@@ -103,6 +103,12 @@ def heap_arrays(threshold: int = HEAP_ARRAYS_BYTES) -> Iterator[None]:
         with _heap["lock"]:
             _heap["depth"] -= 1
             if _heap["depth"] == 0:
-                libc.mallopt(_M_MMAP_THRESHOLD, int(os.environ.get("MALLOC_MMAP_THRESHOLD_",
-                                                                   _GLIBC_DEFAULT_MMAP_THRESHOLD)))
+                libc.mallopt(_M_MMAP_THRESHOLD, _process_mmap_threshold())
                 libc.malloc_trim(0)
+
+
+def _process_mmap_threshold() -> int:
+    """The process' own mmap threshold: ``MALLOC_MMAP_THRESHOLD_`` (the workers', ``flows.runtime.WORKER_ENVIRON``),
+    else glibc's initial 128 KiB (glibc reads the variable only as a number, as here)."""
+    value = os.environ.get("MALLOC_MMAP_THRESHOLD_", "")
+    return int(value) if value.isdigit() else _GLIBC_DEFAULT_MMAP_THRESHOLD

@@ -427,7 +427,6 @@ class _FlipTerms:
     EH: np.ndarray     # (n, V, k) E_l^T H
     C1: np.ndarray     # (n, V, V) E_l^T Q E_l
     C2: np.ndarray     # (n, V, V) E_l^T H E_l
-    KW: np.ndarray     # (V, m_o, n) K W
     WKW: np.ndarray    # (n, V) W_l^T K W_l
 
 
@@ -437,9 +436,8 @@ def _flip_terms(o: _Others, G: np.ndarray) -> _FlipTerms:
     El = np.ascontiguousarray(o.E.transpose(2, 0, 1))                      # (n, V, k)
     EQ = (El.reshape(n * V, k) @ o.Q).reshape(n, V, k)
     EH = (El.reshape(n * V, k) @ H).reshape(n, V, k)
-    KW = np.matmul(o.K, o.W)
-    return _FlipTerms(H, EQ, EH, np.matmul(EQ, El.transpose(0, 2, 1)), np.matmul(EH, El.transpose(0, 2, 1)), KW,
-                      np.sum(o.W * KW, axis=1).T)
+    return _FlipTerms(H, EQ, EH, np.matmul(EQ, El.transpose(0, 2, 1)), np.matmul(EH, El.transpose(0, 2, 1)),
+                      np.sum(o.W * np.matmul(o.K, o.W), axis=1).T)
 
 
 def _flip_scan(model: PatternModel, o: _Others, G: np.ndarray, pattern: np.ndarray,
