@@ -31,7 +31,7 @@ from scipy import sparse
 
 from btfcore.capture.demosaic import demosaic
 from btfcore.capture.demultiplex import demultiplex_operator
-from btfcore.capture.hdr import dark_per_exposure, merge_linear, merge_response
+from btfcore.capture.hdr import dark_per_exposure, linear_merger, merge_response
 from btfcore.capture.radiometric import apply_colour_matrix, apply_led_calibration
 from btfcore.capture.rectify import apply_rectification, rectification_matrix, support_window
 
@@ -195,12 +195,12 @@ def process_view(frames: np.ndarray, exposure_time: np.ndarray, patterns: np.nda
     P = demultiplex_operator(patterns).astype(np.float32)           # (n_leds, n_illum)
     roi = _roi_buffer(roi_out, P, win_shape)                       # (n_illum, *win_shape, 3) or None
     valid_fraction = np.empty(n_illum)
-    dark_line = None
-    if dark_frames is not None and dark_exposure_time is not None:
-        # the dark model is linear in time: fit it once per view, evaluate per bracket
-        d1, d2 = dark_per_exposure(dark_frames[:, row_win, col_win], dark_exposure_time, [1.0, 2.0],
-                                   black_level=black_level)
-        dark_line = ((2.0 * d1 - d2).astype(np.float32), (d2 - d1).astype(np.float32))   # offset DN, rate DN/s
+    dark_line = _dark_line(dark_frames, dark_exposure_time, (row_win, col_win), black_level)
+    if response is None:               # the sensor's settings and the view's frames and dark model checked once
+        merge = linear_merger(frames.shape[2:], frames.dtype, black_level=black_level, white_level=white_level,
+                              gain_e_per_dn=gain_e_per_dn, read_noise_e=read_noise_e,
+                              saturation_margin=settings.saturation_margin)
+        _check_finite_view(frames, dark_line)
     block = min(32, n_illum)  # illuminations demosaicked as one batch and rectified by one sparse product
     hdr = np.empty((block, *frames.shape[2:]), dtype=np.float32)                             # reused buffers
     rgb = hdr if full_rgb else np.empty((block, *win_shape, 3), dtype=np.float32)
@@ -214,12 +214,10 @@ def process_view(frames: np.ndarray, exposure_time: np.ndarray, patterns: np.nda
                     np.multiply(dark_line[1], np.float32(t_k), out=dark[k_exp])
                     dark[k_exp] += dark_line[0]                                     # dark = offset + rate t
             hdr[k], valid = merge_ldr(frames[i], exposure_time[i], response, response_method) \
-                if response is not None else merge_linear(                  # a non-linear (LDR) camera, or raw
-                    frames[i], exposure_time[i], black_level=black_level, white_level=white_level,
-                    gain_e_per_dn=gain_e_per_dn, read_noise_e=read_noise_e,
-                    dark=dark[..., None] if full_rgb and dark is not None else dark,
-                    saturation_margin=settings.saturation_margin)
-            valid_fraction[i] = float(valid.mean())
+                if response is not None else merge(                         # a non-linear (LDR) camera, or raw
+                    frames[i], exposure_time[i], dark[..., None] if full_rgb and dark is not None else dark,
+                    check_finite=False)
+            valid_fraction[i] = np.count_nonzero(valid) / valid.size
         if not full_rgb:
             demosaic(hdr[:n], bayer_pattern, method=settings.demosaic, out=rgb[:n])
         if roi is not None:
@@ -234,6 +232,26 @@ def process_view(frames: np.ndarray, exposure_time: np.ndarray, patterns: np.nda
     if roi is not None:
         to_single_leds(roi, P, led_gain=led_gain, colour_matrix=colour_matrix, out=roi_out)
     return textures, valid_fraction
+
+
+def _dark_line(dark_frames: np.ndarray | None, dark_exposure_time: np.ndarray | None, window: tuple[slice, slice],
+               black_level: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """The view's dark model over its window, linear in time: ``(offset DN, rate DN/s)``, fitted once per view
+    and evaluated per bracket; None without dark frames."""
+    if dark_frames is None or dark_exposure_time is None:
+        return None
+    d1, d2 = dark_per_exposure(dark_frames[:, window[0], window[1]], dark_exposure_time, [1.0, 2.0],
+                               black_level=black_level)
+    return (2.0 * d1 - d2).astype(np.float32), (d2 - d1).astype(np.float32)
+
+
+def _check_finite_view(frames: np.ndarray, dark_line: tuple[np.ndarray, np.ndarray] | None) -> None:
+    """NaN/Inf in a view's float frames or its dark model, named, before its brackets are merged unchecked."""
+    for name, a in (("frames", frames), *(() if dark_line is None else (("dark offset", dark_line[0]),
+                                                                        ("dark rate", dark_line[1])))):
+        if a.dtype.kind == "f" and not np.isfinite(a).all():
+            idx = [int(i) for i in np.unravel_index(int(np.argmin(np.isfinite(a))), a.shape)]
+            raise ValueError(f"{name}{idx} is {a[tuple(idx)]}: it must be finite (no NaN or Inf)")
 
 
 def merge_ldr(codes: np.ndarray, exposure_time: np.ndarray, response: np.ndarray, method: str = "debevec"

@@ -13,6 +13,7 @@ from scipy import ndimage
 from btfcore.capture.hdr import (
     LDR_SIZE,
     dark_per_exposure,
+    linear_merger,
     merge,
     merge_linear,
     merge_response,
@@ -759,3 +760,28 @@ def test_exposure_ratios_measure_each_consecutive_pair():
     assert np.isnan(measured).all() and n_px.tolist() == [40, 40]
     with pytest.raises(ValueError, match="same .n_exp, .... shape"):
         exposure_ratios(signal, usable[:2], times)
+
+
+def test_a_merger_merges_each_bracket_as_merge_linear_does():
+    """The settings checked once (a view's images): the same rate and valid mask, bit for bit, with and
+    without dark frames and ``check_finite``; a bracket of another shape is refused; unchecked, a NaN in the
+    dark frames is not scanned for (the view chain checks its dark model once)."""
+    spec = SPECS["14bit-5exp"]
+    kw = dict(black_level=spec.black_level, white_level=spec.white_level,
+              gain_e_per_dn=spec.gain_e_per_dn, read_noise_e=spec.read_noise_e)
+    sims = [_simulate(spec, seed) for seed in (3, 4)]
+    merge_one = linear_merger(sims[0]["raw"].shape[1:], sims[0]["raw"].dtype, **kw)
+    for sim in sims:
+        for dark in (None, sim["dark"]):
+            ref = merge_linear(sim["raw"], sim["times"], dark=dark, **kw)
+            for check in (True, False):
+                got = merge_one(sim["raw"], sim["times"], dark, check_finite=check)
+                np.testing.assert_array_equal(got[0], ref[0])
+                np.testing.assert_array_equal(got[1], ref[1])
+    with pytest.raises(ValueError, match="frames must be"):
+        merge_one(sims[0]["raw"][:, :10], sims[0]["times"])
+    bad = sims[0]["dark"].copy()
+    bad[0, 5, 6] = np.nan
+    with pytest.raises(ValueError, match=r"dark\[0, 5, 6\] is nan"):
+        merge_one(sims[0]["raw"], sims[0]["times"], bad)
+    merge_one(sims[0]["raw"], sims[0]["times"], bad, check_finite=False)          # not scanned

@@ -202,3 +202,18 @@ def test_calibrated_regions_rectify_to_the_calibrated_textures(capture):
     with pytest.raises(ValueError, match="roi_out must be"):
         process_view(cap.raw[0, 0], cap.exposure_time[0, 0], cap.illumination, roi_out=roi[:3],
                      **view_chain_arguments(cap, 0, 0, window, IngestSettings()))
+
+
+def test_a_nan_in_a_views_float_frames_is_named_before_merging(capture):
+    """The view chain merges its brackets without scanning each (`linear_merger(check_finite=False)`): it scans
+    the view's frames once and names the first NaN by its (illumination, exposure, row, column)."""
+    from btfcore.capture.view_chain import process_view, view_window
+    from tasks.ingest import view_chain_arguments
+
+    cap = open_capture_store(capture)
+    window = view_window(cap.homography[0, 1], cap.roi_shape, tuple(cap.meta.texture_shape), cap.meta.sample_size_m)
+    frames = cap.read_raw(0, 1, window).astype(np.float32)
+    frames[2, 1, 3, 4] = np.nan
+    with pytest.raises(ValueError, match=r"frames\[2, 1, 3, 4\] is nan"):
+        process_view(frames, cap.exposure_time[0, 1], cap.illumination,
+                     **view_chain_arguments(cap, 0, 1, window, IngestSettings()))
