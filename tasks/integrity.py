@@ -460,15 +460,15 @@ def _read_chunk_file(path: str, part: np.ndarray) -> bool:
     return google_crc32c.value(part) == stored
 
 
-def read_chunk_windows(array: zarr.Array, lead: tuple[int, ...], window: tuple[slice, ...], out: np.ndarray) -> None:
-    """``out[...] = array[(*lead, slice(None), *window)]`` for an array with one chunk per index of its first
-    ``len(lead) + 1`` axes and whole along the rest (a capture's ``raw``: one chunk per view and illumination).
-    Plain chunk files (:func:`_plain_codec`) are read into a scratch buffer, checked there and their window
-    copied out (docs/benchmarks.md, 2026-12-05); anything else, a missing or corrupt chunk included, through
-    Zarr, as :func:`read_chunk_rows`."""
+def read_chunk_windows(array: zarr.Array, lead: tuple[int, ...], window: tuple[slice, ...],
+                       out: np.ndarray | None = None) -> np.ndarray:
+    """``array[(*lead, slice(None), *window)]`` (into ``out`` if given) with one chunk per index of the first
+    ``len(lead) + 1`` axes, whole along the rest (a capture's ``raw``): plain chunk files (:func:`_plain_codec`)
+    read and checked in a scratch buffer, their window copied out; else Zarr, as :func:`read_chunk_rows`."""
     shape, chunks, n = array.shape, array.chunks, len(lead) + 1
-    local = _plain_codec(array, out.dtype)
     sizes = tuple(len(range(*w.indices(d))) for w, d in zip(window, shape[n:]))
+    out = np.empty((shape[n - 1], *sizes), _native_dtype(array.dtype)) if out is None else out
+    local = _plain_codec(array, out.dtype)
     if (local is not None and tuple(chunks[:n]) == (1,) * n and tuple(chunks[n:]) == tuple(shape[n:])
             and len(window) == len(shape) - n and out.shape == (shape[n - 1], *sizes)):
         scratch = np.empty(int(np.prod(chunks)) * out.dtype.itemsize, np.uint8)
@@ -479,9 +479,10 @@ def read_chunk_windows(array: zarr.Array, lead: tuple[int, ...], window: tuple[s
                 break
             out[i] = chunk[window]
         else:
-            return
+            return out
     array.get_basic_selection((*lead, slice(None), *window),
                               out=default_buffer_prototype().nd_buffer.from_numpy_array(out))
+    return out
 
 
 def write_chunks_directly(array: zarr.Array, block: tuple[slice, ...], data: np.ndarray) -> bool:

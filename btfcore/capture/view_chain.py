@@ -31,7 +31,7 @@ from scipy import sparse
 
 from btfcore.capture.demosaic import demosaic
 from btfcore.capture.demultiplex import demultiplex_operator
-from btfcore.capture.hdr import dark_per_exposure, linear_merger, merge_response
+from btfcore.capture.hdr import _check_finite, dark_per_exposure, linear_merger, merge_response
 from btfcore.capture.radiometric import apply_colour_matrix, apply_led_calibration
 from btfcore.capture.rectify import apply_rectification, rectification_matrix, support_window
 
@@ -246,12 +246,12 @@ def _dark_line(dark_frames: np.ndarray | None, dark_exposure_time: np.ndarray | 
 
 
 def _check_finite_view(frames: np.ndarray, dark_line: tuple[np.ndarray, np.ndarray] | None) -> None:
-    """NaN/Inf in a view's float frames or its dark model, named, before its brackets are merged unchecked."""
-    for name, a in (("frames", frames), *(() if dark_line is None else (("dark offset", dark_line[0]),
-                                                                        ("dark rate", dark_line[1])))):
-        if a.dtype.kind == "f" and not np.isfinite(a).all():
-            idx = [int(i) for i in np.unravel_index(int(np.argmin(np.isfinite(a))), a.shape)]
-            raise ValueError(f"{name}{idx} is {a[tuple(idx)]}: it must be finite (no NaN or Inf)")
+    """NaN/Inf in a view's frames or its dark model, named by index (:func:`~btfcore.capture.hdr.merge_linear`'s
+    own check), once before its brackets are merged unchecked."""
+    _check_finite(frames, "frames")
+    if dark_line is not None:
+        _check_finite(dark_line[0], "dark offset")
+        _check_finite(dark_line[1], "dark rate")
 
 
 def merge_ldr(codes: np.ndarray, exposure_time: np.ndarray, response: np.ndarray, method: str = "debevec"

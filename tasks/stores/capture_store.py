@@ -300,11 +300,7 @@ class CaptureStore:
         """
         try:
             if illuminations is None:
-                if out is None:
-                    sizes = [len(range(*w.indices(d))) for w, d in zip(window, self.raw.shape[4:])]
-                    out = np.empty((self.raw.shape[2], self.raw.shape[3], *sizes), self.raw.dtype)
-                read_chunk_windows(self.raw, (t, c), (slice(None), window[0], window[1]), out)
-                return out
+                return read_chunk_windows(self.raw, (t, c), (slice(None), window[0], window[1]), out)
             return np.stack([self.raw[t, c, int(i), :, window[0], window[1]] for i in illuminations])
         except (OSError, MemoryError, CorruptChunkError):
             raise                                   # the machine (worth a retry), or already named
