@@ -92,7 +92,8 @@ _K_BILINEAR_G = np.array([[0, 1, 0], [1, 4, 1], [0, 1, 0]], dtype=np.float64) / 
 _K_BILINEAR_RB = np.array([[1, 2, 1], [2, 4, 2], [1, 2, 1]], dtype=np.float64) / 4
 
 
-def _prepare(cfa: np.ndarray, pattern: str, border: str, min_size: int) -> tuple[np.ndarray, str, str]:
+def _prepare(cfa: np.ndarray, pattern: str, border: str, min_size: int,
+             check_finite: bool = True) -> tuple[np.ndarray, str, str]:
     arr = np.asarray(cfa)
     if arr.ndim < 2:
         raise ValueError(f"cfa must be (..., H, W), got shape {arr.shape}")
@@ -107,8 +108,8 @@ def _prepare(cfa: np.ndarray, pattern: str, border: str, min_size: int) -> tuple
         raise ValueError(f"unknown Bayer pattern {pattern!r}; choose one of {', '.join(BAYER_PATTERNS)}")
     if border not in _BORDERS:
         raise ValueError(f"unknown border {border!r}; choose one of {', '.join(_BORDERS)}")
-    bad = ~np.isfinite(arr)
-    if bad.any():
+    bad = ~np.isfinite(arr) if check_finite else None
+    if bad is not None and bad.any():
         idx = tuple(int(v) for v in np.argwhere(bad)[0])
         raise ValueError(f"cfa contains NaN or Inf ({int(bad.sum())} values), first at index {idx}; "
                          "mask or repair those raw values (e.g. from the HDR merge) before demosaicing")
@@ -141,7 +142,7 @@ def _sites(pattern: str) -> dict[str, list[tuple[int, int]]]:
 
 
 def demosaicing_CFA_Bayer_bilinear(cfa: np.ndarray, pattern: str = "RGGB", *, border: str = "reflect",
-                                   out: np.ndarray | None = None) -> np.ndarray:
+                                   out: np.ndarray | None = None, check_finite: bool = True) -> np.ndarray:
     """Bilinear demosaicing of a Bayer mosaic.
 
     Parameters
@@ -158,6 +159,9 @@ def demosaicing_CFA_Bayer_bilinear(cfa: np.ndarray, pattern: str = "RGGB", *, bo
         Buffer of the result's dtype to write into, C-contiguous or a strided view
         that reshapes without a copy (e.g. three channels of a wider stack); reuse it
         across calls: first-touch of new memory is slow (docs/architecture.md, "Pitfalls").
+    check_finite : bool
+        Scan ``cfa`` for NaN and Inf (default); ``False`` for a caller that made sure of it, as
+        :mod:`scipy.linalg`'s ``check_finite`` (the view chain: its frames are checked once per view).
 
     Returns
     -------
@@ -198,7 +202,7 @@ def demosaicing_CFA_Bayer_bilinear(cfa: np.ndarray, pattern: str = "RGGB", *, bo
     >>> demosaicing_CFA_Bayer_bilinear(cfa, border="mirror")[1, 1]
     array([2., 2., 2.])
     """
-    arr, pat, border = _prepare(cfa, pattern, border, 2)
+    arr, pat, border = _prepare(cfa, pattern, border, 2, check_finite)
     flat, res = _flatten(arr, out)
     sites = _sites(pat)
     plane = np.empty(flat.shape[1:], dtype=np.float64)
@@ -213,7 +217,7 @@ def demosaicing_CFA_Bayer_bilinear(cfa: np.ndarray, pattern: str = "RGGB", *, bo
 
 
 def demosaicing_CFA_Bayer_Malvar2004(cfa: np.ndarray, pattern: str = "RGGB", *, border: str = "reflect",
-                                     out: np.ndarray | None = None) -> np.ndarray:
+                                     out: np.ndarray | None = None, check_finite: bool = True) -> np.ndarray:
     """Gradient-corrected linear demosaicing of Malvar, He & Cutler (2004).
 
     Parameters
@@ -230,6 +234,9 @@ def demosaicing_CFA_Bayer_Malvar2004(cfa: np.ndarray, pattern: str = "RGGB", *, 
         Buffer of the result's dtype to write into, C-contiguous or a strided view
         that reshapes without a copy (e.g. three channels of a wider stack); reuse it
         across calls: first-touch of new memory is slow (docs/architecture.md, "Pitfalls").
+    check_finite : bool
+        Scan ``cfa`` for NaN and Inf (default); ``False`` for a caller that made sure of it, as
+        :mod:`scipy.linalg`'s ``check_finite`` (the view chain: its frames are checked once per view).
 
     Returns
     -------
@@ -290,7 +297,7 @@ def demosaicing_CFA_Bayer_Malvar2004(cfa: np.ndarray, pattern: str = "RGGB", *, 
     >>> demosaicing_CFA_Bayer_Malvar2004(cfa, "GRBG")[2, 3]
     array([3.5, 3.5, 3.5])
     """
-    arr, pat, border = _prepare(cfa, pattern, border, 3)
+    arr, pat, border = _prepare(cfa, pattern, border, 3, check_finite)
     flat, res = _flatten(arr, out)
     kernels = {"G@RB": _K_G_AT_RB, "row": _K_ROW, "col": _K_COL, "diag": _K_DIAG}
     for f in range(flat.shape[0]):
@@ -324,7 +331,7 @@ DEMOSAICING_METHODS: dict[str, Callable[..., np.ndarray]] = {
 
 
 def demosaic(cfa: np.ndarray, pattern: str = "RGGB", method: str = "malvar2004", *,
-             border: str = "reflect", out: np.ndarray | None = None) -> np.ndarray:
+             border: str = "reflect", out: np.ndarray | None = None, check_finite: bool = True) -> np.ndarray:
     """Demosaic a Bayer mosaic with a method chosen by name.
 
     Parameters
@@ -339,6 +346,8 @@ def demosaic(cfa: np.ndarray, pattern: str = "RGGB", method: str = "malvar2004",
         Border extension, see :func:`demosaicing_CFA_Bayer_Malvar2004`.
     out : (..., H, W, 3) ndarray, optional
         Buffer to write the result into.
+    check_finite : bool
+        Scan ``cfa`` for NaN and Inf (default), as the methods do.
 
     Returns
     -------
@@ -360,4 +369,4 @@ def demosaic(cfa: np.ndarray, pattern: str = "RGGB", method: str = "malvar2004",
     key = str(method).lower()
     if key not in DEMOSAICING_METHODS:
         raise ValueError(f"unknown demosaicing method {method!r}; valid methods: {', '.join(DEMOSAICING_METHODS)}")
-    return DEMOSAICING_METHODS[key](cfa, pattern, border=border, out=out)
+    return DEMOSAICING_METHODS[key](cfa, pattern, border=border, out=out, check_finite=check_finite)

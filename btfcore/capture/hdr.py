@@ -452,13 +452,10 @@ def _merge_linear_block(y: np.ndarray, black: np.ndarray, dark: np.ndarray | Non
     dtype = p.dtype
     zero = dtype.type(0)
     x = np.empty(y.shape, dtype=dtype)
-    if dark is not None:
-        np.subtract(y, dark, out=x, dtype=dtype)                                 # eq. x_k = y_k - d_k
-    else:
-        np.subtract(y, black, out=x, dtype=dtype)                                # eq. x_k = y_k - b
-    # eq. y_k >= m W: on integer frames compared as integers (exact, and a cheaper pass)
-    saturated = y >= (np.ceil(p.thr) if y.dtype.kind in "ui" else p.thr)
-    usable = ~saturated
+    x[...] = y                      # then subtracted in place: one pass less than a mixed-type subtract
+    np.subtract(x, dark if dark is not None else black, out=x, dtype=dtype)     # eq. x_k = y_k - d_k (or - b)
+    # eq. not saturated, y_k < m W: on integer frames compared as integers (exact, and a cheaper pass)
+    usable = y < (np.ceil(p.thr) if y.dtype.kind in "ui" else p.thr)
     good = x >= p.min_sig                                                        # eq. x_k >= x_min
     good &= usable
     valid = np.any(good, axis=0)

@@ -201,6 +201,7 @@ def process_view(frames: np.ndarray, exposure_time: np.ndarray, patterns: np.nda
                               gain_e_per_dn=gain_e_per_dn, read_noise_e=read_noise_e,
                               saturation_margin=settings.saturation_margin)
         _check_finite_view(frames, dark_line)
+    A = A.astype(np.float32, copy=False)             # the float32 products' operator, converted once per view
     block = min(32, n_illum)  # illuminations demosaicked as one batch and rectified by one sparse product
     hdr = np.empty((block, *frames.shape[2:]), dtype=np.float32)                             # reused buffers
     rgb = hdr if full_rgb else np.empty((block, *win_shape, 3), dtype=np.float32)
@@ -219,14 +220,14 @@ def process_view(frames: np.ndarray, exposure_time: np.ndarray, patterns: np.nda
                     check_finite=False)
             valid_fraction[i] = np.count_nonzero(valid) / valid.size
         if not full_rgb:
-            demosaic(hdr[:n], bayer_pattern, method=settings.demosaic, out=rgb[:n])
+            demosaic(hdr[:n], bayer_pattern, method=settings.demosaic, out=rgb[:n], check_finite=False)
         if roi is not None:
             roi[first:first + n] = rgb[:n]
         # (n, pixels) -> (pixels, n) of RGB triplets and back: OpenCV's blocked transposes (3x numpy's
         # strided copies; demosaicking into a strided view was slower still), so that one sparse
         # product rectifies the n images
         stack = cv2.transpose(rgb[:n].reshape(n, -1, 3)).reshape(*win_shape, 3 * n)
-        out = apply_rectification(A, stack, texture_shape)                                # (h, w, 3n)
+        out = apply_rectification(A, stack, texture_shape, check_finite=False)            # (h, w, 3n)
         rectified[first:first + n].reshape(n, -1, 3)[...] = cv2.transpose(out.reshape(-1, n, 3))
     textures = to_single_leds(rectified, P, led_gain=led_gain, colour_matrix=colour_matrix)
     if roi is not None:

@@ -172,6 +172,16 @@ def test_nan_is_reported_with_its_index():
         demosaic(cfa)
 
 
+@pytest.mark.parametrize("method", sorted(OURS))
+def test_check_finite_false_skips_the_scan_for_a_caller_that_made_sure(method):
+    """The view chain checks a view's frames once and demosaics its merges with ``check_finite=False``:
+    the same result on finite input, and no scan (an Inf passes through to the output, not an error)."""
+    cfa = _hdr_cfa((2, 6, 8), 3, np.float32)
+    np.testing.assert_array_equal(demosaic(cfa, method=method, check_finite=False), demosaic(cfa, method=method))
+    cfa[1, 4, 5] = np.inf
+    assert not np.isfinite(demosaic(cfa, method=method, check_finite=False)[1]).all()
+
+
 # ----------------------------------------------------------------------------- quality against OpenCV
 
 

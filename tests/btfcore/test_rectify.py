@@ -166,6 +166,20 @@ def test_nan_in_image_is_reported_with_its_index():
         rectify(img, _frontal_h(), (8, 8), S_M)
 
 
+def test_apply_rectification_check_finite_false_skips_the_scan():
+    """As the view chain calls it once per block of images it made itself: the same texture, and a NaN is
+    not looked for (it reaches the texels that read it) instead of being named."""
+    d = get_device("bonn-dome2")
+    A = rectification_matrix(d.homography(0, 3), d.roi_shape, d.texture_shape, d.sample_size_m)
+    img = np.random.default_rng(0).random((*d.roi_shape, 6), dtype=np.float32)
+    np.testing.assert_array_equal(apply_rectification(A, img, d.texture_shape, check_finite=False),
+                                  apply_rectification(A, img, d.texture_shape))
+    img[d.roi_shape[0] // 2, d.roi_shape[1] // 2, 4] = np.nan
+    with pytest.raises(ValueError, match="NaN or Inf"):
+        apply_rectification(A, img, d.texture_shape)
+    assert np.isnan(apply_rectification(A, img, d.texture_shape, check_finite=False)[..., 4]).any()
+
+
 # ----------------------------------------------------------------------------- operators
 
 
