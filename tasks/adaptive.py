@@ -39,6 +39,7 @@ from btfcore.acquisition.strategies import THESIS_N_S, Geometry, row_groups, sca
 from btfcore.acquisition.time_model import TimeModelParams, predict_time
 from btfcore.dome import Device
 from btfcore.model.colour import REC709_LUMA
+from tasks.compute import Progress, wait_all
 
 __all__ = ["ADAPTIVE_VERSION", "AwaitingShot", "committee_bases", "adaptive_plan", "adaptive_material",
            "evaluate_adaptive", "fixed_curves", "measured_executor", "simulated_measure",
@@ -421,13 +422,13 @@ def _adaptive_task(model_path: str, materials: list[Any], material_id: str, sett
 
 
 def evaluate_adaptive(model_path: str, materials: list[Any], config: Any, client: Any, out_dir: str | os.PathLike,
-                      result: dict[str, Any], key: str) -> dict[str, Any]:
-    """The adaptive loop leave-one-out on every held-out material, one Dask task each, reused by ``key``.
+                      result: dict[str, Any], key: str, progress: Progress | None = None) -> dict[str, Any]:
+    """The adaptive loop leave-one-out on every held-out material, one Dask task each, reused by ``key``;
+    ``progress(done, total)`` after each material's loop (the ones not reused).
 
     Returns the section's summary: per material the steps and fixed curves, and the bars
     (:func:`adaptive_bars`).
     """
-    from tasks.compute import wait_all
     from tasks.evaluate_acquisition.reuse import read_record
 
     out = Path(out_dir) / "adaptive"
@@ -444,7 +445,7 @@ def evaluate_adaptive(model_path: str, materials: list[Any], config: Any, client
         futures[m.material_id] = client.submit(_adaptive_task, model_path, materials, m.material_id,
                                                config.model_settings(), config, n400.get("rel_l2_log_y"), str(path),
                                                key, pure=False)
-    done = dict(zip(futures, wait_all(list(futures.values()))))
+    done = dict(zip(futures, wait_all(list(futures.values()), progress)))
     records.update(done)
     records = {m.material_id: records[m.material_id] for m in materials}
     figure = plot_curves(records, out / "error_vs_shots.png", "adaptive against fixed samplings (held out)")

@@ -105,8 +105,8 @@ def evaluate_acquisition(db: str | os.PathLike, out_dir: str | os.PathLike, clie
     first = next(iter(result["materials"].values()))
     times = predicted_times(config.build_device(), first["sampling"])
     t0 = time.perf_counter()
-    adaptive = (evaluate_adaptive(model_path, materials, config, client, out, result, key)  # docs/adaptive-capture.md
-                if config.adaptive else None)
+    adaptive = (evaluate_adaptive(model_path, materials, config, client, out, result, key,   # docs/adaptive-capture.md
+                                  progress=progress and progress("adaptive loop")) if config.adaptive else None)
     seconds["adaptive"] = time.perf_counter() - t0
     return {"schema": "btf-acquisition-evaluation", "adaptive": adaptive, "config": config.to_json(),
             "scale": scale_of(materials, geometry, config), "model": model_path,

@@ -35,14 +35,20 @@ TINY_EVALUATION = dict(device="tiny", n_turntable=None, texture_size=12, materia
 def acquisition_evaluation(tmp_path_factory, runtime_session):
     """``(out, summary)`` of `btf evaluate acquisition`'s flow on a tiny truth database, run once:
     ``out`` is ``ROOT/acquisition`` with the truth database in ``ROOT/acquisition-database``, as a demo lays
-    them out."""
+    them out. What the run printed on stderr (not a terminal: a job log's progress lines) is in
+    ``ROOT/stderr.log``."""
+    import contextlib
+    import io
+
     from flows.evaluate_acquisition import evaluate_acquisition_flow
     from tasks.evaluate_acquisition import EvaluationConfig
 
     root = tmp_path_factory.mktemp("demo-layout")
-    summary = evaluate_acquisition_flow(str(root / "acquisition-database"), str(root / "acquisition"),
-                                        runtime_session[2].scheduler.address, EvaluationConfig(**TINY_EVALUATION),
-                                        progress=False)
+    with contextlib.redirect_stderr(io.StringIO()) as err:
+        summary = evaluate_acquisition_flow(str(root / "acquisition-database"), str(root / "acquisition"),
+                                            runtime_session[2].scheduler.address, EvaluationConfig(**TINY_EVALUATION),
+                                            progress=True)
+    (root / "stderr.log").write_text(err.getvalue())
     return root / "acquisition", summary
 
 

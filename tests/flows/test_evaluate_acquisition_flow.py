@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import pytest
 
@@ -66,8 +67,16 @@ def test_flow_writes_every_strategy_and_claim(acquisition_evaluation):
     assert list(adaptive["materials"]) == list(report["materials"]) and adaptive["bars"]
     assert all(rec["n_shots"] >= 1 and rec["steps"] for rec in adaptive["materials"].values())
     assert (out / adaptive["figure"]).is_file() and "Adaptive capture (leave-one-out" in html
-    # the default: a committee of every other material's ALS basis, the measured rows fused
+    # the loop reports its own progress per held-out material (a job log's lines), after the scores' stage
+    # has ended, so that neither stage's time is the other's
+    lines = (out.parent / "stderr.log").read_text().splitlines()
     n_materials = len(report["materials"])
+    reconstructed = next(i for i, line in enumerate(lines) if re.search(r" reconstruct: .*, done$", line))
+    started = next(i for i, line in enumerate(lines) if line.endswith(" adaptive loop: started"))
+    assert reconstructed < started, lines
+    assert any(re.search(rf" adaptive loop: {n_materials}/{n_materials} materials \(100 %\), \d+\.\d s, done$",
+                         line) for line in lines[started:]), lines
+    # the default: a committee of every other material's ALS basis, the measured rows fused
     assert all(rec["settings"]["select"] == "committee" and rec["settings"]["committee"] == n_materials - 1
                and rec["settings"]["measured_rows"] == "fused" for rec in adaptive["materials"].values())
 
