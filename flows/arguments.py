@@ -236,7 +236,7 @@ def evaluate(p: argparse.ArgumentParser) -> None:
                         "strategy and its renderings [default: 1]")
     p.add_argument("--no-adaptive", action="store_true",
                    help="acquisition: skip the adaptive-capture loop on the held-out materials (docs/adaptive-capture.md; "
-                        "about a sixth of the run)")
+                        "about half of the run: 151 of 324 s at the default scale on 2 cores)")
     add_adaptive_choices(p, "--adaptive-", "acquisition: the adaptive loop's ")
     p.add_argument("--non-ideal", default=None, metavar="PRESET[,FIELD=VALUE...]",
                    help="acquisition: measure under a dome that is not ideal: 'realistic' (VMV §5.1's gains and "

@@ -64,7 +64,8 @@ class EvaluationConfig:
         rendered.
     adaptive : bool
         Also run the adaptive-capture loop on every held-out material (issue 20,
-        docs/adaptive-capture.md; about a sixth of the run). Not part of the scores key.
+        docs/adaptive-capture.md; about half of the run: 151 of 324 s at the default scale on two
+        cores, docs/adaptive-capture.md, "Measured"). Not part of the scores key.
     adaptive_select : {'committee', 'posterior'}
         How the loop chooses the next group (:data:`btfcore.acquisition.adaptive.SELECTIONS`); the
         committee is every other material's ALS basis. Not part of the scores key.
