@@ -70,6 +70,29 @@ def test_gains_equal_the_brute_force_reduction():
             assert gain[g] == pytest.approx(brute, rel=1e-6, abs=1e-9 * abs(J(st.rows)))
 
 
+def test_cross_validation_is_a_refit_without_each_group():
+    """The cross-validation predictor's mean squared log-Y error of the measured groups, each predicted from a
+    solve without its rows (done in one batched call), equals refitting without each group by hand."""
+    U, sigma, truth = _problem(seed=2)
+    st = AdaptiveState(U, sigma, GEOMETRY, NOISE, n_tx=truth.shape[1], weighting="relative")
+    measure = _measure(truth, 2)
+    for g in start_groups(U, sigma, GEOMETRY, 4) + [3, 17, 30]:
+        st.add(g, *measure(g, st.rows_of(g)))
+    m = st._model()
+    ys = st.y @ REC709_LUMA
+    by = st.b.reshape(st.k, st.n_tx, 3)[:, st.sub] @ REC709_LUMA
+    n_cam, total = GEOMETRY.n_cam, 0.0
+    for i in range(len(st.groups)):
+        sl = slice(i * n_cam, (i + 1) * n_cam)
+        sw = np.sqrt(st.w[sl])[:, None]
+        a = st.X[st.rows[sl]] * sw
+        D = np.linalg.solve(st.M - a.T @ a, by - a.T @ (sw * ys[sl]))       # the solve without group i
+        d = np.log(np.maximum(st.X[st.rows[sl]] @ D, LOG_YUV_EPS)) - np.log(np.maximum(ys[sl], LOG_YUV_EPS))
+        total += float(np.sum(d ** 2))
+    assert st._cv_row_mse(m) == pytest.approx(total / (len(st.rows) * len(st.sub)), rel=1e-9)
+    assert AdaptiveState(U, sigma, GEOMETRY, NOISE, n_tx=truth.shape[1])._cv_row_mse(m) == 0.0   # nothing measured
+
+
 def test_group_rows_are_all_cameras_of_one_turntable_and_led():
     rows = group_rows(np.array([0, 17]), GEOMETRY)           # group 17 = turntable 1, LED 1
     assert rows.shape == (2, GEOMETRY.n_cam)
