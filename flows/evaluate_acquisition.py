@@ -26,7 +26,8 @@ def evaluate_stage(db: str, out: str, scheduler_address: str, config: Evaluation
     from flows.progress import progress_bars, say
     from tasks.evaluate_acquisition import evaluate_acquisition, reuse_message
 
-    units = {"truth BTFs": "view", "bases": "material", "reconstruct": "material", "adaptive loop": "material"}
+    units = {"truth BTFs": "view", "bases": "material", "reconstruct": "material", "render": "material",
+             "adaptive loop": "material"}
     with progress_bars(progress, units) as bar, Client(scheduler_address, set_as_default=False) as client:
         summary = evaluate_acquisition(db, out, client, config, progress=bar)
     if progress:

@@ -352,7 +352,7 @@ def _thresholded_fallback(u: np.ndarray, kept: np.ndarray) -> tuple[np.ndarray, 
     return R, float(s_eff.max() / s_eff.min()), int(bad.sum())
 
 
-def _denoise_operator(u: np.ndarray, method: str, variance: np.ndarray | None, decile: float
+def _denoise_operator(u: np.ndarray, method: str, variance: np.ndarray | None, decile: float, *, warn: bool = True
                       ) -> tuple[np.ndarray, np.ndarray | None, float | None, int]:
     """``(R, dropped, condition, fallback)`` of the VMV de-noising of a demultiplexed BTF: ``R = U^T``
     (``'projection'``) or ``U~^+`` on the rows kept below ``decile`` of ``variance``, zero on the
@@ -375,7 +375,7 @@ def _denoise_operator(u: np.ndarray, method: str, variance: np.ndarray | None, d
     Rk, cond = _regularised_solve(u[kept], None, 0.0, "U~ (U without the dropped rows)",
                                   "use a higher decile or fewer basis vectors",
                                   "use method='projection', a higher decile (fewer rows dropped) or fewer basis "
-                                  "vectors")
+                                  "vectors", warn=warn)
     R = np.zeros((k, n_lv))
     R[:, kept] = Rk                                                   # VMV §4.1: U~^+ B~_demux
     return R, dropped, cond, 0
@@ -393,6 +393,7 @@ def solve_operator(
     decile: float = THRESHOLD_DECILE,
     fused: bool | None = None,
     dtype: DTypeLike = np.float32,
+    warn: bool = True,
 ) -> SolveOperator:
     """Build the reconstruction operator of a basis and a measurement.
 
@@ -426,13 +427,12 @@ def solve_operator(
     decile : float
         ``'thresholded'``: rows with variance above this decile are left out.
     fused : bool, optional
-        Store :math:`F = U R` so that :func:`apply` is one GEMM
-        :math:`F y` (``2 n_lv n_meas`` flops per column) instead of two,
-        :math:`U (R y)` (``2 k (n_lv + n_meas)``). None: whichever has fewer
-        flops.
+        Store :math:`F = U R` so that :func:`apply` is one GEMM :math:`F y` (``2 n_lv n_meas`` flops per
+        column) instead of two, :math:`U (R y)` (``2 k (n_lv + n_meas)``). None: whichever has fewer flops.
     dtype : float32 or float64
-        Precision of :func:`apply` (the operator is computed in float64 and
-        rounded once).
+        Precision of :func:`apply` (the operator is computed in float64 and rounded once).
+    warn : bool
+        False: no :class:`btfcore.IllConditionedWarning`; the caller reports ``operator.condition`` itself.
 
     Returns
     -------
@@ -495,14 +495,14 @@ def solve_operator(
     p = None if patterns is None else _as_patterns(patterns)
     kw: dict = {"method": method, "lam": lam_v}
     if method in ("pinv", "tikhonov"):
-        return _sparse_operator(u, s, lam_v, p, rows, method, fused, dtype, kw)
+        return _sparse_operator(u, s, lam_v, p, rows, method, fused, dtype, kw, warn)
     if method == "direct":
-        return _direct_operator(u, s, lam_v, p, rows, fused, dtype, kw)
-    return _denoising_operator(u, p, rows, method, variance, decile, fused, dtype, kw)
+        return _direct_operator(u, s, lam_v, p, rows, fused, dtype, kw, warn)
+    return _denoising_operator(u, p, rows, method, variance, decile, fused, dtype, kw, warn)
 
 
 def _sparse_operator(u: np.ndarray, s: np.ndarray | None, lam_v: float, p: np.ndarray | None, rows,
-                     method: str, fused: bool | None, dtype, kw: dict) -> SolveOperator:
+                     method: str, fused: bool | None, dtype, kw: dict, warn: bool = True) -> SolveOperator:
     """:func:`solve_operator` for ``'pinv'`` and ``'tikhonov'``: single-light rows of ``u`` (paper 1, eq. (3))."""
     hint = "measure at least k rows, pass fewer basis vectors, or use method='tikhonov' with lam > 0"
     if p is not None:
@@ -510,12 +510,12 @@ def _sparse_operator(u: np.ndarray, s: np.ndarray | None, lam_v: float, p: np.nd
                          f"(paper 4, eq. 10) for multiplexed ones")
     r = _as_rows(rows, u.shape[0], "rows of U (light/view pairs)")
     A = u if r is None else u[r]                                      # eq. (3): M U, M a row selection
-    R, cond = _regularised_solve(A, s, lam_v, "M U", hint)
+    R, cond = _regularised_solve(A, s, lam_v, "M U", hint, warn=warn)
     return _finish(R, u, fused, dtype, rows=r, condition=cond, **kw)
 
 
 def _direct_operator(u: np.ndarray, s: np.ndarray | None, lam_v: float, p: np.ndarray | None, rows,
-                     fused: bool | None, dtype, kw: dict) -> SolveOperator:
+                     fused: bool | None, dtype, kw: dict, warn: bool = True) -> SolveOperator:
     """:func:`solve_operator` for ``'direct'``: the multiplexed rows fitted as they are (paper 4, eq. (10))."""
     if p is None:
         raise ValueError("method='direct' fits multiplexed measurements: pass patterns (n_p, n_lights); "
@@ -526,7 +526,7 @@ def _direct_operator(u: np.ndarray, s: np.ndarray | None, lam_v: float, p: np.nd
     A = MU if r is None else MU[r]                                    # eq. (10): S M U
     hint_d = "measure at least k rows, pass fewer basis vectors, or regularise with lam > 0 (paper 4: 0.01)"
     try:
-        R, cond = _regularised_solve(A, s, lam_v, "S M U", hint_d)
+        R, cond = _regularised_solve(A, s, lam_v, "S M U", hint_d, warn=warn)
     except ValueError as err:
         rank_p = int(np.linalg.matrix_rank(p))
         if rank_p < p.shape[1]:
@@ -536,14 +536,14 @@ def _direct_operator(u: np.ndarray, s: np.ndarray | None, lam_v: float, p: np.nd
 
 
 def _denoising_operator(u: np.ndarray, p: np.ndarray | None, rows, method: str, variance, decile: float,
-                        fused: bool | None, dtype, kw: dict) -> SolveOperator:
+                        fused: bool | None, dtype, kw: dict, warn: bool = True) -> SolveOperator:
     """:func:`solve_operator` for ``'projection'`` and ``'thresholded'`` (VMV §4.1), the demultiplexing
     folded in when patterns are given."""
     if rows is not None:
         raise ValueError(f"method={method!r} projects the whole demultiplexed BTF; it takes no rows "
                          f"(use method='direct' with rows for sparse multiplexed measurements)")
     n_lv, k = u.shape
-    R, dropped, cond, n_fallback = _denoise_operator(u, method, variance, decile)
+    R, dropped, cond, n_fallback = _denoise_operator(u, method, variance, decile, warn=warn)
     if cond is not None:
         kw["condition"] = cond
     if n_fallback:
@@ -823,6 +823,7 @@ def abtf_operator(
     method: str = "pinv",
     lam: float | None = None,
     dtype: DTypeLike = np.float32,
+    warn: bool = True,
 ) -> SolveOperator:
     """Reconstruction operator of an ABTF patch basis (paper 1, §3.3, §4.1.2).
 
@@ -841,6 +842,8 @@ def abtf_operator(
     lam : float, optional
         As for :func:`solve_operator`.
     dtype : float32 or float64
+    warn : bool
+        As for :func:`solve_operator`.
 
     Returns
     -------
@@ -880,7 +883,7 @@ def abtf_operator(
     idx = (np.arange(p * p)[:, None] * n_lv + r[None, :]).ravel()      # rows of I_{p²} (x) S, order (d, j)
     A = u[idx]                                                        # S_patch U_patch
     R, cond = _regularised_solve(A, s, lam_v, "S_patch U_patch",
-                                 "measure more rows, pass fewer basis vectors, or use method='tikhonov'")
+                                 "measure more rows, pass fewer basis vectors, or use method='tikhonov'", warn=warn)
     return _finish(R, u, False, dtype, method=method, lam=lam_v, rows=r, condition=cond, patch_size=p)
 
 

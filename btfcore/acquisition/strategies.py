@@ -180,7 +180,8 @@ class _Design:
         if label not in self._abrdf_ops:
             rows, k = self.rows(label), self.k_abrdf
             self._abrdf_ops[label] = {c: solve_operator(u[:, :min(k, u.shape[1], len(rows))], method="pinv",
-                                                        rows=rows, fused=False) for c, u in self.U.items()}
+                                                        rows=rows, fused=False, warn=c != self.log_y)
+                                      for c, u in self.U.items()}   # log Y's condition is reported: no warning
         return self._abrdf_ops[label]
 
     @cached_property
@@ -293,7 +294,7 @@ def _abrdf(d: _Design, label: str) -> Built:
 
 def _abtf(d: _Design, label: str) -> Built:
     rows = d.rows(label)
-    abtf = abtf_operator(d.bases.abtf_log_y.U, rows, p=3, method="pinv")
+    abtf = abtf_operator(d.bases.abtf_log_y.U, rows, p=3, method="pinv", warn=False)   # kappa_log_y reported
     return rows, {**d.abrdf_ops(label), d.log_y: abtf}, {
         "paper": "1", "basis": "3x3 ABTF for log Y, ABRDF for U/Y and V/Y", "k": int(d.bases.abtf_log_y.U.shape[1]),
         "n_meas": int(len(rows)), "kappa_log_y": abtf.condition}
@@ -306,7 +307,7 @@ def _abrdf_projection(d: _Design, _: Any) -> Built:
 
 def _abtf_projection(d: _Design, _: Any) -> Built:
     all_rows = np.arange(d.geometry.n_lv)
-    abtf = abtf_operator(d.bases.abtf_log_y.U, all_rows, p=3, method="pinv")
+    abtf = abtf_operator(d.bases.abtf_log_y.U, all_rows, p=3, method="pinv", warn=False)
     return all_rows, {**d.projection_ops, d.log_y: abtf}, {
         "paper": "1", "basis": "3x3 ABTF", "k": int(d.bases.abtf_log_y.U.shape[1]),
         "note": "truth projected (lower bound)"}
@@ -326,7 +327,7 @@ def _thresholded(d: _Design, _: Any) -> Built:
     # VMV §4.1: rows above the 9th decile of the variance of the linear ("unnormalised") demultiplexed
     # textures left out of the projection on the class's truncated SVD of linear RGB ("D ~ U Sigma V^T")
     U = d.bases.linear.U
-    thr = solve_operator(U, method="thresholded", variance=d.variance, fused=False)
+    thr = solve_operator(U, method="thresholded", variance=d.variance, fused=False, warn=False)  # condition reported
     return None, {"rgb": thr}, {"paper": "VMV §4.1", "basis": "class truncated SVD (linear RGB)", "decile": 9,
                                 "k": int(U.shape[1]), "variance": "linear demultiplexed RGB per texture",
                                 "condition": thr.condition}
@@ -343,7 +344,7 @@ def _sparse_tikhonov(d: _Design, n_thesis: int) -> Built:
 def _sparse_pinv(d: _Design, n_thesis: int) -> Built:
     rows, _ = d.sparse(n_thesis)
     k_p = min(int(d.bases.als.U.shape[1]), len(rows))
-    pinv = solve_operator(d.bases.als.U[:, :k_p], method="pinv", rows=rows, fused=False)
+    pinv = solve_operator(d.bases.als.U[:, :k_p], method="pinv", rows=rows, fused=False, warn=False)  # reported
     return rows, {"rgb": pinv}, {"paper": "1 eq. 3", "n_s": scaled_pairs(n_thesis, d.n_pairs), "k": k_p,
                                  "n_meas": int(len(rows)), "condition": pinv.condition}
 

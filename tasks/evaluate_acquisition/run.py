@@ -29,20 +29,23 @@ from tasks.model import Material, discover
 
 
 def _render_figures(render_ids: list[str], reused: dict[str, Any], stores: dict[str, dict[str, str]],
-                    materials: list[Material], folder: Path, key: str, config: EvaluationConfig, client: Any
-                    ) -> dict[str, Any]:
+                    materials: list[Material], folder: Path, key: str, config: EvaluationConfig, client: Any,
+                    progress: Progress | None = None) -> dict[str, Any]:
     """Renderings and ABRDF images of every material in ``render_ids``: those in ``reused`` as they are,
-    the others rendered from their reconstruction ``stores`` and stored under ``key`` (``figures.json``)."""
+    the others rendered from their reconstruction ``stores`` and stored under ``key`` (``figures.json``);
+    ``progress(done, total)`` after each material rendered."""
     geometry = material_geometry(materials[0])
-    figures: dict[str, Any] = {}
-    for mid in render_ids:
-        if mid not in reused:
-            truth_path = next(m.path for m in materials if m.material_id == mid)
-            figure = {"renderings": renderings(truth_path, stores[mid], folder / mid, config.render_size, client),
-                      "abrdf": abrdf_images(truth_path, stores[mid], geometry, folder / mid)}
-            reused[mid] = write_record(folder / mid / "figures.json", key, figure)
-        figures[mid] = reused[mid]
-    return figures
+    pending = [mid for mid in render_ids if mid not in reused]
+    for i, mid in enumerate(pending):
+        if progress:
+            progress(i, len(pending))
+        truth_path = next(m.path for m in materials if m.material_id == mid)
+        figure = {"renderings": renderings(truth_path, stores[mid], folder / mid, config.render_size, client),
+                  "abrdf": abrdf_images(truth_path, stores[mid], geometry, folder / mid)}
+        reused[mid] = write_record(folder / mid / "figures.json", key, figure)
+    if progress and pending:
+        progress(len(pending), len(pending))
+    return {mid: reused[mid] for mid in render_ids}
 
 
 def evaluate_acquisition(db: str | os.PathLike, out_dir: str | os.PathLike, client: Any,
@@ -91,7 +94,7 @@ def evaluate_acquisition(db: str | os.PathLike, out_dir: str | os.PathLike, clie
     seconds["evaluate"] = time.perf_counter() - t0
     rendered = [mid for mid in render_ids if mid not in figures]
     figures = _render_figures(render_ids, figures, result["reconstructions"], materials, out / "figures", fig_key,
-                              config, client)
+                              config, client, progress=progress("render") if progress and rendered else None)
     seconds["render"] = time.perf_counter() - t0 - seconds["evaluate"]
     if not config.keep_reconstructions:
         shutil.rmtree(out / "reconstructions", ignore_errors=True)

@@ -425,6 +425,28 @@ def test_ill_conditioned_pinv_and_thresholded_solves_warn_with_the_figure_and_th
     assert op.condition < ILL_CONDITIONED_SOLVE
 
 
+def test_warn_false_leaves_the_condition_number_to_the_caller():
+    import warnings
+
+    from btfcore import ILL_CONDITIONED_SOLVE, IllConditionedWarning
+
+    U = _basis_with_a_lonely_vector()
+    variance = np.ones(30)
+    variance[0] = 100.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", IllConditionedWarning)
+        op = solve_operator(U, method="pinv", rows=np.arange(1, 30), warn=False)
+        assert op.condition > ILL_CONDITIONED_SOLVE                  # reported, not warned
+        op = solve_operator(np.random.default_rng(1).normal(size=(30, 2)) * [1.0, 1e-7], method="thresholded",
+                            variance=variance, warn=False)
+        assert op.condition > ILL_CONDITIONED_SOLVE
+        Up = np.tile(U, (9, 1))                                       # a 3x3 patch basis of the same rows
+        op = abtf_operator(Up, np.arange(1, 30), p=3, warn=False)
+        assert op.condition > ILL_CONDITIONED_SOLVE
+    with pytest.warns(IllConditionedWarning, match="S_patch U_patch"):
+        abtf_operator(Up, np.arange(1, 30), p=3)                      # the default still warns
+
+
 def test_well_conditioned_solves_do_not_warn():
     import warnings
 

@@ -72,8 +72,9 @@ def test_flow_writes_every_strategy_and_claim(acquisition_evaluation):
     lines = (out.parent / "stderr.log").read_text().splitlines()
     n_materials = len(report["materials"])
     reconstructed = next(i for i, line in enumerate(lines) if re.search(r" reconstruct: .*, done$", line))
+    rendered = next(i for i, line in enumerate(lines) if re.search(r" render: 1/1 material \(100 %\), .*, done$", line))
     started = next(i for i, line in enumerate(lines) if line.endswith(" adaptive loop: started"))
-    assert reconstructed < started, lines
+    assert reconstructed < rendered < started, lines             # so is the rendering of the one material
     assert any(re.search(rf" adaptive loop: {n_materials}/{n_materials} materials \(100 %\), \d+\.\d s, done$",
                          line) for line in lines[started:]), lines
     # the default: a committee of every other material's ALS basis, the measured rows fused
