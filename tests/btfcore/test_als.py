@@ -297,3 +297,14 @@ def test_bad_input_is_refused_with_the_index():
         merge_als_bases([(np.eye(20, 2), np.ones(2))] * 2, 5)
     with pytest.raises(ValueError, match=r"bases\[0\].U contains NaN"):
         merge_als_bases([(np.full((3, 2), np.nan), np.ones(2))], 1)
+
+
+@pytest.mark.parametrize("backend", ["numpy", "torch"])
+def test_pair_products_equal_the_gathered_rows(backend):
+    from btfcore.model import als
+
+    ops = als._ops(backend, "cpu", np.dtype(np.float32))
+    X = ops.asarray(np.random.default_rng(4).standard_normal((37, 5), dtype=np.float32)).T   # a transposed view
+    iu, ju = np.triu_indices(5)
+    expected = ops.numpy(X)[iu] * ops.numpy(X)[ju]
+    np.testing.assert_array_equal(ops.numpy(als._pair_products(ops, X)), expected)
