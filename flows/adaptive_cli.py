@@ -20,7 +20,8 @@ steps after the start design (early predictions run low), or --budget shots are
 spent.
 The error is predicted without the truth, from the posterior of the class ALS
 basis' coefficients (paper 4 eq. 10, Tikhonov lambda Sigma^-1) under the
-sensor's noise and a model residual estimated from the material's own rows.
+sensor's noise and a model residual estimated from the material's own rows
+(the start design's, the largest of their estimates at the last 3 steps).
 The next group is, by default (--select committee), the one whose rows hold the
 most error as a committee of the model database's other per-material ALS bases,
 fitted to the same measurements, sees it (where they disagree with the class

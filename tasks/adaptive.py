@@ -46,7 +46,7 @@ __all__ = ["ADAPTIVE_VERSION", "AwaitingShot", "committee_bases", "adaptive_plan
            "step_measurement", "write_adaptive_report"]
 
 #: Raised when the adaptive records' meaning changes (their reuse key includes it).
-ADAPTIVE_VERSION = 6
+ADAPTIVE_VERSION = 7
 
 
 # --------------------------------------------------------------------------- executor and scores

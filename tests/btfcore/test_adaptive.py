@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from btfcore.acquisition.adaptive import (LUMA_NOISE_SHARE, MISFIT_MEDIAN_CAP, STOP_PATIENCE, AdaptiveState, expected_log_error, fuse_measured,
+from btfcore.acquisition.adaptive import (LUMA_NOISE_SHARE, MISFIT_MEDIAN_CAP, MISFIT_WINDOW, STOP_PATIENCE, AdaptiveState, expected_log_error, fuse_measured,
                                          fused_error, group_rows, log_y_error, luminance_noise, run_adaptive,
                                          shot_costs, start_groups)
 from btfcore.model.colour import LOG_YUV_EPS, REC709_LUMA
@@ -259,17 +259,40 @@ def test_committee_and_fused_rows_beat_the_posterior_on_a_missing_lobe():
     assert qbc.steps[-1].true < 0.5 * plain.steps[-1].true
     assert qbc.settings["select"] == "committee" and qbc.settings["committee"] == 1
     # the predictor's residual comes from the start design's rows, not from the lobe's rows chosen for their error
-    st = AdaptiveState(U, sigma, GEOMETRY, NOISE, n_tx=truth.shape[1], weighting="relative")
+    st = AdaptiveState(U, sigma, GEOMETRY, NOISE, n_tx=truth.shape[1], weighting="relative", seed=1)
+    st.unbiased_groups = qbc.settings["n_start"]
     for g in qbc.groups:
         st.add(int(g), *_measure(truth, 2)(int(g), st.rows_of(int(g))))
-    s2_all = st._model()["s2"]
-    st.unbiased_groups = qbc.settings["n_start"]
-    assert qbc.steps[-1].residual_s == pytest.approx(np.sqrt(st._model()["s2_pred"]), rel=1e-9)
-    assert qbc.steps[-1].residual_s < 0.5 * np.sqrt(s2_all)
+        m = st._model()
+    assert qbc.steps[-1].residual_s == pytest.approx(np.sqrt(m["s2_pred"]), rel=1e-9)
+    assert qbc.steps[-1].residual_s < 0.5 * np.sqrt(m["s2"])
     with pytest.raises(ValueError, match="committee"):
         run_adaptive(U, sigma, GEOMETRY, NOISE, _measure(truth, 2), select="committee", **kw)
     with pytest.raises(ValueError, match="measured_rows"):
         AdaptiveState(U, sigma, GEOMETRY, NOISE, n_tx=4, measured_rows="both")
+
+
+def test_the_predictors_misfit_is_the_largest_of_the_latest_estimates():
+    """From the step the start design is complete on, the predictor's misfit is the largest of the start rows'
+    estimates at the last ``MISFIT_WINDOW`` steps: a new group that pulls the fit towards them lowers their
+    residuals, not the basis' misfit (docs/adaptive-capture.md, "The misfit over a window of steps")."""
+    U, sigma, truth = _problem(3, s=0.1)
+    res = run_adaptive(U, sigma, GEOMETRY, NOISE, _measure(truth, 3), n_tx=truth.shape[1], target=0.0, budget=24,
+                       seed=3)
+    n0 = res.settings["n_start"]
+    st = AdaptiveState(U, sigma, GEOMETRY, NOISE, n_tx=truth.shape[1], seed=3, weighting="relative")
+    st.unbiased_groups = n0
+    estimates = []
+    for g in res.groups:
+        st.add(int(g), *_measure(truth, 3)(int(g), st.rows_of(int(g))))
+        st._model()
+        estimates.append(st.misfit_estimates.get(len(st.groups)))
+    used = np.array([step.residual_s for step in res.steps[n0 - 1:]]) ** 2
+    after = np.array(estimates[n0 - 1:])
+    window = [after[max(0, i - MISFIT_WINDOW + 1):i + 1].max() for i in range(len(after))]
+    np.testing.assert_allclose(used, window, rtol=1e-9)
+    assert estimates[:n0 - 1] == [None] * (n0 - 1)                  # before: the start rows measured so far
+    assert np.any(after < used * (1 - 1e-6))                          # a dip the window held
 
 
 def test_fused_rows_weigh_model_and_measurement_by_their_log_variances():
