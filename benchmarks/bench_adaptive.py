@@ -84,6 +84,7 @@ def main(argv: list[str] | None = None) -> dict:
     first = start_groups(U, sigma, g, min(ats[0], 12))
     for grp in first:
         st.add(grp, *measure(grp))
+    st.unbiased_groups = len(first)                    # as run_adaptive: the predictor's misfit from the start rows
     order = [x for x in rng.permutation(g.n_turn * g.n_leds).tolist() if x not in first]
     results = {}
     for at in ats:
