@@ -502,7 +502,7 @@ def solve_operator(
 
 
 def _sparse_operator(u: np.ndarray, s: np.ndarray | None, lam_v: float, p: np.ndarray | None, rows,
-                     method: str, fused: bool | None, dtype, kw: dict, warn: bool = True) -> SolveOperator:
+                     method: str, fused: bool | None, dtype, kw: dict, warn: bool) -> SolveOperator:
     """:func:`solve_operator` for ``'pinv'`` and ``'tikhonov'``: single-light rows of ``u`` (paper 1, eq. (3))."""
     hint = "measure at least k rows, pass fewer basis vectors, or use method='tikhonov' with lam > 0"
     if p is not None:
@@ -515,7 +515,7 @@ def _sparse_operator(u: np.ndarray, s: np.ndarray | None, lam_v: float, p: np.nd
 
 
 def _direct_operator(u: np.ndarray, s: np.ndarray | None, lam_v: float, p: np.ndarray | None, rows,
-                     fused: bool | None, dtype, kw: dict, warn: bool = True) -> SolveOperator:
+                     fused: bool | None, dtype, kw: dict, warn: bool) -> SolveOperator:
     """:func:`solve_operator` for ``'direct'``: the multiplexed rows fitted as they are (paper 4, eq. (10))."""
     if p is None:
         raise ValueError("method='direct' fits multiplexed measurements: pass patterns (n_p, n_lights); "
@@ -536,7 +536,7 @@ def _direct_operator(u: np.ndarray, s: np.ndarray | None, lam_v: float, p: np.nd
 
 
 def _denoising_operator(u: np.ndarray, p: np.ndarray | None, rows, method: str, variance, decile: float,
-                        fused: bool | None, dtype, kw: dict, warn: bool = True) -> SolveOperator:
+                        fused: bool | None, dtype, kw: dict, warn: bool) -> SolveOperator:
     """:func:`solve_operator` for ``'projection'`` and ``'thresholded'`` (VMV §4.1), the demultiplexing
     folded in when patterns are given."""
     if rows is not None:
