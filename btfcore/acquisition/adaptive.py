@@ -96,7 +96,8 @@ MISFIT_MEDIAN_CAP = 8.0
 #: The predictor's misfit is the largest of the start rows' estimates at this many latest steps (from the step the
 #: start design is complete on): a new group that pulls the fit towards the start rows lowers their residuals for
 #: a step or two, not the basis' misfit (docs/adaptive-capture.md, "The misfit over a window of steps": on the
-#: evaluation's materials 1-2 missed bar 2 at target stops, 3-4 met it at the default scale, 5 and all steps did worse).
+#: evaluation's materials 1-2 missed bar 2 at target stops, 3-4 met it at the default scale, 5 and all steps did worse;
+#: on another draw of materials, --eval-seed 1, no window meets it: "A second draw of materials").
 MISFIT_WINDOW = 3
 #: Texels the predictor and the selection average over (a seeded subset; the reconstruction uses all),
 #: at most PREDICT_ENTRIES / n_lv (the thesis' 26,136 rows: 88 texels, 2.3 million entries).
