@@ -568,6 +568,9 @@ def adaptive_sections(section: dict[str, Any] | None) -> list[dict[str, Any]]:
                       "the loop's steps up to it): "
                       + "; ".join(f"{n}: {100 * t['share_within_25pct']:.0f} % within 25 %, the true error up to "
                                   f"{t['true_over_target_max']:.2f}x the target"
-                                  for n, t in bars.get("at_target_stop", {}).items()) + "."],
+                                  for n, t in bars.get("at_target_stop", {}).items()) + ". "
+                      "These shares are of this run's materials: the predictor's settings were chosen on the "
+                      "default seed's, and on another draw (--eval-seed 1) bar 2 is not met at any stop "
+                      "(docs/adaptive-capture.md, \"A second draw of materials\")."],
              "tables": [rows, mats],
              "figures": [{"file": section["figure"], "caption": "log Y error against shots, every held-out material"}]}]

@@ -84,8 +84,10 @@ def test_report_shows_both_comparisons():
     bars = adaptive_bars(records)
     assert bars["shots_to_fixed_n400"]["carpet"]["ratio"] == 2.0                # 8 / 4 shots to 0.15
     assert bars["shots_to_fixed_n400"]["carpet"]["ratio_evaluation"] == 4.0     # 8 / 2 shots to 0.4
-    table = adaptive_sections({"bars": bars, "materials": records, "figure": "f.png"})[0]["tables"][0]
+    section = adaptive_sections({"bars": bars, "materials": records, "figure": "f.png"})[0]
+    table = section["tables"][0]
     assert "paper-4" in table[0][-1]
+    assert "--eval-seed 1" in section["text"][-1]      # bar 2's shares are of one draw of materials
     assert table[1][0] == "carpet" and table[1][-1] == 4.0
     assert table[2][0] == "stone" and table[2][-1] == "-"
 
