@@ -12,9 +12,9 @@ with :meth:`~btfcore.acquisition.adaptive.AdaptiveState.predict` wrapped, and re
   the largest 1 % (median).
 
 It prints, per material, these at a few steps, and the share of materials whose prediction is within 25 % of the
-truth at the budget's stop and at the target stops (the fixed random swap's n_s = 100/200/400 errors, the
-loop's patience). The choice of groups does not use the prediction, so a variant of the predictor can be
-scored on the same records (docs/adaptive-capture.md, "A second draw of materials"). About 20 s per material
+truth at the budget's stop and at the target stops (``tasks.adaptive.adaptive_bars``, as the evaluation's
+report). The choice of groups does not use the prediction, so a variant of the predictor can be scored on the
+same records (docs/adaptive-capture.md, "A second draw of materials"). About 20 s per material
 at the default scale on one core.
 
     .venv/bin/python benchmarks/study_adaptive_predictor.py --db acq-db-s1 --eval out-s1 --seed 1 \\
@@ -31,18 +31,11 @@ from typing import Any
 import numpy as np
 
 from btfcore.acquisition import adaptive as AD
-from btfcore.acquisition.adaptive import NOISE_MASK, luminance_noise, stop_index
+from btfcore.acquisition.adaptive import NOISE_MASK, luminance_noise
 from btfcore.model.colour import LOG_YUV_EPS, REC709_LUMA
 from tasks import adaptive as TA
 from tasks.evaluate_acquisition.config import EvaluationConfig
 from tasks.model import discover
-
-_TRUTH: dict[str, np.ndarray] = {}
-
-
-def _log(y: np.ndarray) -> np.ndarray:
-    return np.log(np.maximum(y, LOG_YUV_EPS))
-
 
 def _tail(state: AD.AdaptiveState, m: dict[str, Any]) -> dict[str, float]:
     """The start rows' squared log residuals (well-exposed entries): their largest entries' share of the sum."""
@@ -58,17 +51,23 @@ def _tail(state: AD.AdaptiveState, m: dict[str, Any]) -> dict[str, float]:
             "top1pct_fit_over_measured": float(np.median(fit[top1] / np.maximum(ys[good][top1], 1e-12)))}
 
 
-def _recording(log: list[dict[str, Any]]):
+def _log_y(rgb: np.ndarray) -> np.ndarray:
+    """log Y of linear RGB ``(..., 3)`` with the loop's luminance (Rec. 709, ``tasks.adaptive.truth_score``)."""
+    return np.log(np.maximum(TA._luma(rgb), LOG_YUV_EPS))
+
+
+def _recording(log: list[dict[str, Any]], truth: dict[str, np.ndarray]):
+    """``AdaptiveState.predict`` that appends each step's parts to ``log`` (``truth['log_y']``: the held-out
+    material's log Y, ``(n_lv, n_tx)``)."""
     predict = AD.AdaptiveState.predict
 
     def wrapped(self: AD.AdaptiveState, model: dict | None = None) -> dict[str, float]:
         m = model or self._model()
         out = predict(self, m)
-        truth = _log(_TRUTH["y"])
-        d2 = (_log(self.reconstruction(m) @ REC709_LUMA).reshape(truth.shape) - truth) ** 2
+        d2 = (_log_y(self.reconstruction(m)) - truth["log_y"]) ** 2
         measured = np.zeros(self.n_lv, dtype=bool)
         measured[self.rows] = True
-        ss = float(np.sum(truth ** 2))
+        ss = float(np.sum(truth["log_y"] ** 2))
         rec = {"predicted": out["posterior"], "s2_pred": float(m["s2_pred"]), "s2": float(m["s2"]),
                "true_measured": float(d2[measured].sum() / ss), "true_unmeasured": float(d2[~measured].sum() / ss),
                "true_unmeasured_mean": float(d2[~measured].mean())}
@@ -81,39 +80,23 @@ def _recording(log: list[dict[str, Any]]):
 
 def _held_out(eval_dir: str, config: EvaluationConfig, material_id: str, materials: list[Any]) -> dict[str, Any]:
     log: list[dict[str, Any]] = []
+    truth_log_y: dict[str, np.ndarray] = {}
     keep = AD.AdaptiveState.predict, TA.adaptive_material
     adaptive_material = TA.adaptive_material
 
     def capture_truth(U, sigma, geometry, truth, *args, **kwargs):
-        t = np.asarray(truth, dtype=np.float64)
-        _TRUTH["y"] = (t @ REC709_LUMA).reshape(t.shape[0], -1)
+        truth_log_y["log_y"] = _log_y(truth).reshape(len(truth), -1)
         return adaptive_material(U, sigma, geometry, truth, *args, **kwargs)
 
-    AD.AdaptiveState.predict, TA.adaptive_material = _recording(log), capture_truth
+    AD.AdaptiveState.predict, TA.adaptive_material = _recording(log, truth_log_y), capture_truth
     try:
         with tempfile.TemporaryDirectory() as scratch:
             rec = TA._adaptive_task(f"{eval_dir}/model.zarr", materials, material_id, config.model_settings(), config,
                                     None, f"{scratch}/record.json", "study")
     finally:
         AD.AdaptiveState.predict, TA.adaptive_material = keep
-    return {"class": rec["class"], "settings": rec["settings"], "fixed": rec["fixed"],
+    return {"class": rec["class"], "n_shots": rec["n_shots"], "settings": rec["settings"], "fixed": rec["fixed"],
             "steps": [dict(s, **{k: v for k, v in r.items() if k != "predicted"}) for s, r in zip(rec["steps"], log)]}
-
-
-def within(records: dict[str, dict[str, Any]]) -> dict[str, int]:
-    """Materials whose prediction is within 25 % of the truth at the budget's stop and at each target stop."""
-    def ok(step: dict[str, Any]) -> bool:
-        return abs(step["predicted"] - step["true"]) <= 0.25 * step["true"]
-    counts = {"budget": sum(ok(r["steps"][-1]) for r in records.values())}
-    for n_s in TA.THESIS_N_S:
-        n = 0
-        for r in records.values():
-            target = next(f["error"] for f in r["fixed"] if f["n_thesis"] == n_s)
-            at = stop_index([s["predicted"] for s in r["steps"]], [s["n_shots"] for s in r["steps"]], target,
-                            r["settings"]["n_start"], r["settings"]["patience"])
-            n += ok(r["steps"][-1 if at is None else at])
-        counts[f"n_s={n_s}"] = n
-    return counts
 
 
 def main() -> None:
@@ -141,7 +124,10 @@ def main() -> None:
                   f"start rows' squared log residuals: {s.get('top1pct_share', float('nan')):.2f} / "
                   f"{s.get('top10pct_share', float('nan')):.2f}, fit/measured "
                   f"{s.get('top1pct_fit_over_measured', float('nan')):.3f}", flush=True)
-    print(json.dumps({"materials": len(records), "within_25pct": within(records)}))
+    bars = TA.adaptive_bars(records)        # the evaluation's bar 2: at the budget's stop and at the target stops
+    print(json.dumps({"materials": len(records), "within_25pct": {
+        "budget": bars["share_within_25pct"]["posterior"],
+        **{n: t["share_within_25pct"] for n, t in bars["at_target_stop"].items()}}}))
     if a.out:
         with open(a.out, "w") as f:
             json.dump(records, f)
