@@ -78,7 +78,11 @@ def _recording(log: list[dict[str, Any]], truth: dict[str, np.ndarray]):
     return wrapped
 
 
-def _held_out(eval_dir: str, config: EvaluationConfig, material_id: str, materials: list[Any]) -> dict[str, Any]:
+def _held_out(eval_dir: str, config: EvaluationConfig, material_id: str, materials: list[Any],
+              recording=_recording) -> dict[str, Any]:
+    """The evaluation's loop of one held-out material with ``recording(log, truth)`` as ``AdaptiveState.predict``
+    (each call appends one record to ``log``; ``truth['log_y']`` the material's log Y): the evaluation's
+    record, each step's entries joined by the step's recorded ones."""
     log: list[dict[str, Any]] = []
     truth_log_y: dict[str, np.ndarray] = {}
     keep = AD.AdaptiveState.predict, TA.adaptive_material
@@ -88,7 +92,7 @@ def _held_out(eval_dir: str, config: EvaluationConfig, material_id: str, materia
         truth_log_y["log_y"] = _log_y(truth).reshape(len(truth), -1)
         return adaptive_material(U, sigma, geometry, truth, *args, **kwargs)
 
-    AD.AdaptiveState.predict, TA.adaptive_material = _recording(log, truth_log_y), capture_truth
+    AD.AdaptiveState.predict, TA.adaptive_material = recording(log, truth_log_y), capture_truth
     try:
         with tempfile.TemporaryDirectory() as scratch:
             rec = TA._adaptive_task(f"{eval_dir}/model.zarr", materials, material_id, config.model_settings(), config,
@@ -99,22 +103,31 @@ def _held_out(eval_dir: str, config: EvaluationConfig, material_id: str, materia
             "steps": [dict(s, **{k: v for k, v in r.items() if k != "predicted"}) for s, r in zip(rec["steps"], log)]}
 
 
-def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def replay_parser(doc: str) -> argparse.ArgumentParser:
+    """The replay's command line (a study adds its own options): the evaluation's database, output and seed."""
+    p = argparse.ArgumentParser(description=doc.split("\n\n")[0])
     p.add_argument("--db", required=True, help="the evaluation's truth database (--db of btf evaluate acquisition)")
     p.add_argument("--eval", required=True, help="its output folder (holds model.zarr)")
     p.add_argument("--seed", type=int, default=0, help="the evaluation's --eval-seed")
     p.add_argument("--materials-per-class", type=int, default=2)
     p.add_argument("--materials", default="", help="comma-separated material ids (default: all)")
     p.add_argument("--out", default="", help="JSON of every step's record")
-    a = p.parse_args()
-    config = EvaluationConfig(materials_per_class=a.materials_per_class, seed=a.seed)
+    return p
+
+
+def replay_materials(a: argparse.Namespace) -> tuple[EvaluationConfig, list[Any], list[Any]]:
+    """The evaluation's configuration, its materials and those to replay (``--materials``, default all)."""
     materials = discover(a.db)
     only = set(filter(None, a.materials.split(",")))
+    return (EvaluationConfig(materials_per_class=a.materials_per_class, seed=a.seed), materials,
+            [m for m in materials if not only or m.material_id in only])
+
+
+def main() -> None:
+    a = replay_parser(__doc__).parse_args()
+    config, materials, chosen = replay_materials(a)
     records = {}
-    for m in materials:
-        if only and m.material_id not in only:
-            continue
+    for m in chosen:
         records[m.material_id] = rec = _held_out(a.eval, config, m.material_id, materials)
         print(m.material_id, rec["class"], flush=True)
         for i in sorted({rec["settings"]["n_start"] - 1, 19, len(rec["steps"]) - 1}):
