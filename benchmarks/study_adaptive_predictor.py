@@ -110,6 +110,8 @@ def replay_parser(doc: str) -> argparse.ArgumentParser:
     p.add_argument("--eval", required=True, help="its output folder (holds model.zarr)")
     p.add_argument("--seed", type=int, default=0, help="the evaluation's --eval-seed")
     p.add_argument("--materials-per-class", type=int, default=2)
+    p.add_argument("--turntable", type=int, default=EvaluationConfig.n_turntable,
+                   help="the evaluation's --eval-turntable")
     p.add_argument("--materials", default="", help="comma-separated material ids (default: all)")
     p.add_argument("--out", default="", help="JSON of every step's record")
     return p
@@ -119,7 +121,8 @@ def replay_materials(a: argparse.Namespace) -> tuple[EvaluationConfig, list[Any]
     """The evaluation's configuration, its materials and those to replay (``--materials``, default all)."""
     materials = discover(a.db)
     only = set(filter(None, a.materials.split(",")))
-    return (EvaluationConfig(materials_per_class=a.materials_per_class, seed=a.seed), materials,
+    return (EvaluationConfig(materials_per_class=a.materials_per_class, seed=a.seed, n_turntable=a.turntable),
+            materials,
             [m for m in materials if not only or m.material_id in only])
 
 
