@@ -21,7 +21,8 @@ predictor adds it):
 
 It prints the issue's bar 1 (the probes cost shots) and bar 2 at the budget's stop and the target stops
 (``tasks.adaptive.adaptive_bars``) with each estimate as the prediction from the ``--min-probes``-th probe on
-(the loop's own before). About 40 s per material at the default scale (docs/adaptive-capture.md, "Random probes").
+(the loop's own before). About 45 s per material at the default scale on one core, 2 minutes at four turntable
+positions (docs/adaptive-capture.md, "Samples of the unmeasured rows").
 
     .venv/bin/python benchmarks/study_adaptive_probes.py --db acq-db-s1 --eval out-s1 --seed 1 [--every 3]
 """
