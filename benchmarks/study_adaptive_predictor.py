@@ -78,7 +78,7 @@ def _recording(log: list[dict[str, Any]], truth: dict[str, np.ndarray]):
     return wrapped
 
 
-def _held_out(eval_dir: str, config: EvaluationConfig, material_id: str, materials: list[Any],
+def replay_held_out(eval_dir: str, config: EvaluationConfig, material_id: str, materials: list[Any],
               recording=_recording) -> dict[str, Any]:
     """The evaluation's loop of one held-out material with ``recording(log, truth)`` as ``AdaptiveState.predict``
     (each call appends one record to ``log``; ``truth['log_y']`` the material's log Y): the evaluation's
@@ -131,7 +131,7 @@ def main() -> None:
     config, materials, chosen = replay_materials(a)
     records = {}
     for m in chosen:
-        records[m.material_id] = rec = _held_out(a.eval, config, m.material_id, materials)
+        records[m.material_id] = rec = replay_held_out(a.eval, config, m.material_id, materials)
         print(m.material_id, rec["class"], flush=True)
         for i in sorted({rec["settings"]["n_start"] - 1, 19, len(rec["steps"]) - 1}):
             s = rec["steps"][i]

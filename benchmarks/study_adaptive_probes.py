@@ -38,7 +38,7 @@ import numpy as np
 
 from btfcore.acquisition import adaptive as AD
 from btfcore.acquisition.adaptive import FUSE_S2_FLOOR, LOG_YUV_EPS, REC709_LUMA, fused_error, luminance_noise
-from study_adaptive_predictor import _held_out, replay_materials, replay_parser
+from study_adaptive_predictor import replay_held_out, replay_materials, replay_parser
 from tasks import adaptive as TA
 
 ESTIMATES = ("mean", "ratio", "greg")
@@ -147,7 +147,7 @@ def main() -> None:
     records = {}
     with probing(a.every, a.seed):
         for m in chosen:
-            records[m.material_id] = rec = _held_out(a.eval, config, m.material_id, materials, _recording)
+            records[m.material_id] = rec = replay_held_out(a.eval, config, m.material_id, materials, _recording)
             last = rec["steps"][-1]
             print(f"{m.material_id} at {last['n_shots']} shots ({last['n_probes']} probes): true {last['true']:.4f}; "
                   "over the truth: " + ", ".join(f"{k} {last[k] / last['true']:.2f}" for k in ("predicted", *ESTIMATES)
