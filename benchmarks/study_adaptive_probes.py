@@ -42,6 +42,7 @@ from study_adaptive_predictor import replay_held_out, replay_materials, replay_p
 from tasks import adaptive as TA
 
 ESTIMATES = ("mean", "ratio", "greg")
+_COMMITTEE_GAINS = AD.AdaptiveState.committee_gains                    # the loop's own, before :func:`probing`
 
 
 @contextlib.contextmanager
@@ -85,12 +86,9 @@ def probe_errors(state: AD.AdaptiveState, m: dict[str, Any]) -> np.ndarray:
     v = luminance_noise(state.y, state.gain, state.noise)
     out = []
     for group in state.probes:
-        at = state.groups.index(group) * n_cam
-        sl = slice(at, at + n_cam)
-        sw = np.sqrt(state.w[sl])
-        a = state.X[state.rows[sl]] * sw[:, None]
-        res = ys[sl] - m["Yhat"][state.rows[sl]]
-        pred = ys[sl] - np.linalg.solve(np.eye(n_cam) - a @ m["Minv"] @ a.T, sw[:, None] * res) / sw[:, None]
+        i = state.groups.index(group)
+        sl = slice(i * n_cam, (i + 1) * n_cam)
+        pred = state.group_held_out(m, ys, i)
         y = ys[sl]
         lit = (y * state.gain[sl][:, None] > state.noise.read_noise_e) & (y > eps)
         log_pred = np.log(np.maximum(pred, eps))
@@ -163,8 +161,6 @@ def main() -> None:
         with open(a.out, "w") as f:
             json.dump(records, f)
 
-
-_COMMITTEE_GAINS = AD.AdaptiveState.committee_gains                    # the loop's own, before :func:`probing`
 
 if __name__ == "__main__":
     main()

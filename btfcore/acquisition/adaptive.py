@@ -430,21 +430,25 @@ class AdaptiveState:
     def _cv_row_mse(self, m: dict) -> float:
         """Mean squared log-Y error of the measured groups, each predicted from the others (exact for the
         linear solve: :math:`e^{(-G)} = (I - H_{GG})^{-1} e_G`)."""
-        Minv, Yhat = m["Minv"], m["Yhat"]
         n_cam = self.geometry.n_cam
         ys = self.y @ REC709_LUMA
-        res = ys - Yhat[self.rows]
         total = 0.0
         for i in range(len(self.groups)):
-            sl = slice(i * n_cam, (i + 1) * n_cam)
-            sw = np.sqrt(self.w[sl])
-            a = self.X[self.rows[sl]] * sw[:, None]
-            H = a @ Minv @ a.T
-            loo = np.linalg.solve(np.eye(n_cam) - H, sw[:, None] * res[sl]) / sw[:, None]   # y - yhat^(-G)
-            pred = ys[sl] - loo
-            d = np.log(np.maximum(pred, LOG_YUV_EPS)) - np.log(np.maximum(ys[sl], LOG_YUV_EPS))
+            y = ys[i * n_cam:(i + 1) * n_cam]
+            d = np.log(np.maximum(self.group_held_out(m, ys, i), LOG_YUV_EPS)) - np.log(np.maximum(y, LOG_YUV_EPS))
             total += float(np.sum(d ** 2))
         return total / max(len(self.rows) * len(self.sub), 1)
+
+    def group_held_out(self, m: dict, ys: np.ndarray, i: int) -> np.ndarray:
+        """The ``i``-th measured group's luminance ``(n_cam, n_sub)`` predicted from the other groups, exact for
+        the linear solve: :math:`y_G - (I - H_{GG})^{-1} (y_G - \\hat y_G)` on the weighted rows (``m``: the
+        state's :meth:`_model`; ``ys``: the measured rows' luminance ``(n_meas, n_sub)``)."""
+        n_cam = self.geometry.n_cam
+        sl = slice(i * n_cam, (i + 1) * n_cam)
+        sw = np.sqrt(self.w[sl])[:, None]
+        a = self.X[self.rows[sl]] * sw
+        res = sw * (ys[sl] - m["Yhat"][self.rows[sl]])
+        return ys[sl] - np.linalg.solve(np.eye(n_cam) - a @ m["Minv"] @ a.T, res) / sw     # y - (y - yhat^(-G))
 
     # ------------------------------------------------------------------ selection
 
