@@ -20,10 +20,14 @@ orthonormal one and the measurements its rows times positive coefficients. Steps
 of the thesis' n_s = 400 pairs (:func:`btfcore.acquisition.time_model.predict_time`, default exposure).
 
 Bar (issue 20): per-step overhead < 5 % of the device's time per shot (CPU seconds, the largest ``--at``),
-of the default (committee) selection; the posterior selection's share is reported beside it.
+of the default (committee) selection; the posterior selection's share is reported beside it. With
+``--predictor probes`` every :data:`~btfcore.acquisition.adaptive.PROBE_EVERY`-th group after the start design
+is a probe and the update's prediction includes the probes' estimate, whose committee disagreement the next
+choice reads from the model, as in :func:`~btfcore.acquisition.adaptive.run_adaptive` (each choice takes the
+model of the update before it).
 
 Usage: ``python benchmarks/bench_adaptive.py [--quick] [--k 64] [--texels 128] [--at 12,100,400]
-[--committee 11]``;
+[--committee 11] [--predictor probes]``;
 ``--quick`` uses 32 x 32 texels and ``--at 12,50``.
 """
 
@@ -52,11 +56,13 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--repeats", type=int, default=3, help="timed steps at each --at")
     p.add_argument("--committee", type=int, default=11,
                    help="other bases of the committee (the evaluation's: the other 11 materials)")
+    p.add_argument("--predictor", default="posterior", choices=("posterior", "probes"),
+                   help="the loop's predictor: probes adds the probe groups and their estimate to the step")
     args = p.parse_args(argv)
     if args.quick:
         args.texels, args.at, args.repeats = 32, "12,50", 2
 
-    from btfcore.acquisition.adaptive import AdaptiveState, group_rows, start_groups
+    from btfcore.acquisition.adaptive import PROBE_EVERY, AdaptiveState, group_rows, start_groups
     from btfcore.acquisition.noise import SensorNoise
     from btfcore.acquisition.plan import sparse_plan
     from btfcore.acquisition.strategies import THESIS_N_S, Geometry
@@ -87,14 +93,19 @@ def main(argv: list[str] | None = None) -> dict:
     st.unbiased_groups = len(first)                    # as run_adaptive: the predictor's misfit from the start rows
     order = [x for x in rng.permutation(g.n_turn * g.n_leds).tolist() if x not in first]
     results = {}
+    probes = args.predictor == "probes"
+
+    def is_probe() -> bool:                            # run_adaptive's schedule
+        return probes and (len(st.groups) - len(first)) % PROBE_EVERY == 0
+
     for at in ats:
         while len(st.groups) < at:
             grp = order.pop()
             if grp not in st.groups:                   # not one a timed step chose
-                st.add(grp, *measure(grp))
+                st.add(grp, *measure(grp), probe=is_probe())
         choose, posterior, update, coeffs = [], [], [], []
+        model = st._model()
         for _ in range(args.repeats):
-            model = st._model()
             t0 = time.process_time()
             nxt = int(np.argmax(st.committee_gains(model)))
             choose.append(time.process_time() - t0)      # the committee's choice alone (until 2026-12-06 this
@@ -103,7 +114,7 @@ def main(argv: list[str] | None = None) -> dict:
             posterior.append(time.process_time() - t0)
             y, gain = measure(nxt)
             t0 = time.process_time()
-            st.add(nxt, y, gain)
+            st.add(nxt, y, gain, probe=is_probe())
             model = st._model()
             st.predict(model)
             update.append(time.process_time() - t0)
@@ -126,9 +137,11 @@ def main(argv: list[str] | None = None) -> dict:
     share_posterior = max(r["choose_posterior_cpu_s"] + r["update_cpu_s"] for r in results.values()) / per_shot
     out = {"benchmark": "adaptive", "platform": platform.platform(),
            "blas_threads": os.environ["OPENBLAS_NUM_THREADS"], "n_lv": g.n_lv, "k": args.k, "n_tx": n_tx,
-           "committee": args.committee, "steps": results, "device_s_per_shot": per_shot,
+           "committee": args.committee, "predictor": args.predictor,
+           "probes": len(st.probes), "steps": results, "device_s_per_shot": per_shot,
            "overhead_share": share, "overhead_share_posterior": share_posterior,
-           "bars": [bar("adaptive step CPU s / device s per shot (thesis scale)", share, "< 0.05", share < 0.05, 20)]}
+           "bars": [bar("adaptive step CPU s / device s per shot (thesis scale" + (", probes)" if probes else ")"),
+                        share, "< 0.05", share < 0.05, 20)]}
     print(json.dumps(out, indent=1))
     return out
 

@@ -305,7 +305,7 @@ def cluster(p: argparse.ArgumentParser) -> None:
 
 
 def add_adaptive_choices(p: argparse.ArgumentParser, prefix: str, what: str = "") -> None:
-    """``PREFIXselect`` and ``PREFIXrows`` of the adaptive loop (``btf acquire``: ``--``, ``btf evaluate``:
+    """``PREFIXselect``, ``PREFIXrows`` and ``PREFIXpredictor`` of the adaptive loop (``btf acquire``: ``--``, ``btf evaluate``:
     ``--adaptive-``; docs/adaptive-capture.md)."""
     p.add_argument(f"{prefix}select", default="committee", choices=("committee", "posterior"),
                    help=f"{what}choice of the next shot: where a committee of the model database's other "
@@ -316,3 +316,11 @@ def add_adaptive_choices(p: argparse.ArgumentParser, prefix: str, what: str = ""
                    help=f"{what}measured rows of the reconstruction (also the fixed samplings' it is compared "
                         "with): fused with the measurements, or the basis' fit only (paper 4 eq. 10) "
                         "[default: fused]")
+    p.add_argument(f"{prefix}predictor", default="posterior", choices=("posterior", "cv", "probes"),
+                   help=f"{what}error prediction the target (and the evaluation's bar 2) is tested on: the "
+                        "posterior under the noise model and the start rows' misfit, the measured groups' "
+                        "leave-one-group-out error, or probes: every 3rd shot after the start design is a group "
+                        "drawn at random, not chosen, and the unmeasured rows' error is estimated from theirs by a "
+                        "regression on the committee's disagreement (needs --select committee). Probes made the "
+                        "prediction at the budget's stop far more reliable on simulated materials, at a cost of "
+                        "shots to a given error (docs/adaptive-capture.md, \"Probe groups\") [default: posterior]")

@@ -200,6 +200,7 @@ def _evaluation_config(args: argparse.Namespace):
                             materials_per_class=args.eval_materials_per_class, seed=args.eval_seed,
                             render_materials=args.eval_render, adaptive=not args.no_adaptive,
                             adaptive_select=args.adaptive_select, adaptive_rows=args.adaptive_rows,
+                            adaptive_predictor=args.adaptive_predictor,
                             non_ideal=_non_ideal(args.non_ideal) if args.non_ideal else IDEAL)
 
 

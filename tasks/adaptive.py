@@ -29,8 +29,8 @@ from typing import Any
 import numpy as np
 import zarr
 
-from btfcore.acquisition.adaptive import (STOP_PATIENCE, AdaptiveResult, AdaptiveState, group_pairs, log_y_error,
-                                         run_adaptive, stop_index)
+from btfcore.acquisition.adaptive import (PREDICTION_KEYS, STOP_PATIENCE, AdaptiveResult, AdaptiveState, first_stop,
+                                         group_pairs, log_y_error, run_adaptive, stop_index)
 from btfcore.acquisition.band_evaluation import noisy_single
 from btfcore.acquisition.noise import SensorNoise, bracket_gain, exposure_gain
 from btfcore.acquisition.plan import CapturePlan, ExposureModel, Shot
@@ -297,6 +297,16 @@ def adaptive_material(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, trut
     return record
 
 
+def predictor_of(rec: dict[str, Any]) -> str:
+    """The predictor a loop's record stopped on (``settings['predictor']``; records before it: the posterior)."""
+    return rec.get("settings", {}).get("predictor", "posterior")
+
+
+def prediction(step: dict[str, Any], predictor: str) -> float:
+    """A step record's prediction by ``predictor`` (:data:`~btfcore.acquisition.adaptive.PREDICTION_KEYS`)."""
+    return step[PREDICTION_KEYS[predictor]]
+
+
 def shots_to_reach(steps: Sequence[dict[str, Any]], error: float) -> int | None:
     """Shots after which the true error first is at most ``error`` (None: never within the run)."""
     for s in steps:
@@ -322,6 +332,9 @@ def plot_curves(records: dict[str, dict[str, Any]], path: Path, title: str) -> s
         ax.plot(shots, [100 * (s["true"] or np.nan) for s in rec["steps"]], "-", color="C0", label="adaptive, true")
         ax.plot(shots, [100 * s["predicted"] for s in rec["steps"]], "--", color="C0", label="adaptive, predicted")
         ax.plot(shots, [100 * s["predicted_cv"] for s in rec["steps"]], ":", color="C2", label="adaptive, CV")
+        if predictor_of(rec) == "probes":
+            ax.plot(shots, [100 * s["predicted_probes"] for s in rec["steps"]], "-.", color="C4",
+                    label="adaptive, probes")
         fixed = [f for f in rec.get("fixed", []) if f["n_thesis"] is not None]
         if fixed:
             ax.plot([f["n_shots"] for f in fixed], [100 * f["error"] for f in fixed], "s-", color="C1",
@@ -349,15 +362,20 @@ def write_adaptive_report(out_dir: str | os.PathLike, summary: dict[str, Any]) -
     write_json(out / "report.json", summary)
     rec = summary["record"]
     fig = plot_curves({summary["material"]: rec}, out / "error_vs_shots.png", "error against shots")
-    steps = [["step", "turntable", "LED", "shots", "predicted [%]", "CV predicted [%]", "true [%]",
-              "residual s [relative]", "CPU per step [s]"]]
+    probes = predictor_of(rec) == "probes"
+    steps = [["step", "turntable", "LED", "shots", "predicted [%]", "CV predicted [%]"]
+             + (["probe", "probes' prediction [%]"] if probes else []) + ["true [%]", "residual s [relative]",
+                                                                          "CPU per step [s]"]]
     steps += [[s["step"], s["turntable"], s["led"], s["n_shots"], round(100 * s["predicted"], 2),
-               round(100 * s["predicted_cv"], 2), None if s["true"] is None else round(100 * s["true"], 2),
-               round(s["residual_s"], 4), round(s["cpu_s"], 4)] for s in rec["steps"]]
+               round(100 * s["predicted_cv"], 2)]
+              + (["yes" if s["probe"] else "", round(100 * s["predicted_probes"], 2)] if probes else [])
+              + [None if s["true"] is None else round(100 * s["true"], 2), round(s["residual_s"], 4),
+                 round(s["cpu_s"], 4)] for s in rec["steps"]]
     fixed = [["sampling", "shots", "measured rows", "true error [%]"]] + [
         [f["name"], f["n_shots"], f["n_meas"], round(100 * f["error"], 2)] for f in rec.get("fixed", [])]
     head = {"material": summary["material"], "stopped by": rec["stopped"], "shots": rec["n_shots"],
-            "target [%]": 100 * summary["target"], "final predicted [%]": round(100 * rec["steps"][-1]["predicted"], 2),
+            "target [%]": 100 * summary["target"], "predictor": predictor_of(rec),
+            "final predicted [%]": round(100 * prediction(rec["steps"][-1], predictor_of(rec)), 2),
             "final true [%]": None if rec["steps"][-1]["true"] is None else round(100 * rec["steps"][-1]["true"], 2),
             "predicted acquisition time [s]": round(rec["predicted_time"]["total_s"], 1)}
     sections = [{"title": "Error against shots",
@@ -415,7 +433,8 @@ def _adaptive_task(model_path: str, materials: list[Any], material_id: str, sett
                             truth, noise, device, target=0.0, budget=budget, seed=seed,
                             light_dir=np.asarray(group["light_dir"][...]), view_dir=np.asarray(group["view_dir"][...]),
                             sampling_steps=config.sampling_steps, select=config.adaptive_select,
-                            committee=committee, measured_rows=config.adaptive_rows)
+                            committee=committee, measured_rows=config.adaptive_rows,
+                            predictor=config.adaptive_predictor)
     rec["class"] = m.cls
     rec["fixed_n400_evaluation"] = fixed_n400
     return write_record(record_path, key, rec)
@@ -433,7 +452,8 @@ def evaluate_adaptive(model_path: str, materials: list[Any], config: Any, client
 
     out = Path(out_dir) / "adaptive"
     out.mkdir(parents=True, exist_ok=True)
-    key = f"{key}/adaptive-{ADAPTIVE_VERSION}-{config.adaptive_select}-{config.adaptive_rows}"
+    key = f"{key}/adaptive-{ADAPTIVE_VERSION}-{config.adaptive_select}-{config.adaptive_rows}" + (
+        f"-{config.adaptive_predictor}" if config.adaptive_predictor != "posterior" else "")
     records, futures = {}, {}
     for m in materials:
         path = out / f"{m.material_id}.json"
@@ -482,21 +502,25 @@ def adaptive_bars(records: dict[str, dict[str, Any]], structured: Sequence[str] 
             c["ratio_evaluation"] = c["n_s"] / float(np.mean(c["shots_to_evaluation_n400"]))
     bar1 = all(per_class[c]["ratio"] >= 2 and per_class[c]["never"] == 0 for c in structured if c in per_class)
     within = {}
+    used = {predictor_of(rec) for rec in records.values()}
+    shown = ["posterior", "cv"] + sorted(used - {"posterior", "cv"})
     for mid, rec in records.items():
         last = rec["steps"][-1]
-        within[mid] = {p: abs(last[k] - last["true"]) / last["true"] for p, k in
-                       (("posterior", "predicted"), ("cv", "predicted_cv"))}
-    share = {p: float(np.mean([w[p] <= 0.25 for w in within.values()])) for p in ("posterior", "cv")}
+        within[mid] = {p: abs(last[PREDICTION_KEYS[p]] - last["true"]) / last["true"] for p in shown
+                       if last.get(PREDICTION_KEYS[p]) is not None}
+    share = {p: float(np.mean([w[p] <= 0.25 for w in within.values() if p in w])) for p in shown}
+    stop_share = float(np.mean([within[mid][predictor_of(rec)] <= 0.25 for mid, rec in records.items()]))
     return {"shots_to_fixed_n400": per_class, "bar1_met": bool(bar1), "prediction_rel_error_at_stop": within,
-            "share_within_25pct": share, "bar2_met": bool(share["posterior"] >= 0.9),
-            "at_target_stop": target_stops(records)}
+            "share_within_25pct": share, "predictor": sorted(used), "share_within_25pct_stop": stop_share,
+            "bar2_met": bool(stop_share >= 0.9), "at_target_stop": target_stops(records)}
 
 
 def target_stops(records: dict[str, dict[str, Any]], patience: int | None = None) -> dict[str, dict[str, float]]:
     """Bar 2 where the loop stops at a target instead of its budget, from the budget run's steps (the choice
     does not use the target, so a run with one takes the same steps up to its stop): for the fixed random
     swap's error at each of the thesis' n_s as the target, the step :func:`stop_index` stops at with
-    ``patience`` (default: the run's, else :data:`STOP_PATIENCE`; the last step where none is).
+    ``patience`` (default: the run's, else :data:`STOP_PATIENCE`; the last step where none is), on the run's
+    predictor from its :func:`~btfcore.acquisition.adaptive.first_stop` on.
 
     Returns ``{"n_s=N": {"share_within_25pct", "true_over_target_max", "true_over_target_median"}}``: how
     often the prediction at that stop is within 25 % of the true error, and how far the true error is then
@@ -508,12 +532,12 @@ def target_stops(records: dict[str, dict[str, Any]], patience: int | None = None
             target = next((f["error"] for f in rec["fixed"] if f["n_thesis"] == n_s), None)
             if target is None:
                 continue
-            settings = rec.get("settings", {})
-            at = stop_index([s["predicted"] for s in rec["steps"]], [s["n_shots"] for s in rec["steps"]], target,
-                            settings.get("n_start", 1), patience if patience is not None else
+            settings, predictor = rec.get("settings", {}), predictor_of(rec)
+            at = stop_index([prediction(s, predictor) for s in rec["steps"]], [s["n_shots"] for s in rec["steps"]],
+                            target, first_stop(settings), patience if patience is not None else
                             settings.get("patience", STOP_PATIENCE))
             stop = rec["steps"][-1 if at is None else at]
-            within.append(abs(stop["predicted"] - stop["true"]) <= 0.25 * stop["true"])
+            within.append(abs(prediction(stop, predictor) - stop["true"]) <= 0.25 * stop["true"])
             over.append(stop["true"] / target)
         if within:
             out[f"n_s={n_s}"] = {"share_within_25pct": float(np.mean(within)),
@@ -528,6 +552,16 @@ _RULES = {"committee": "the one whose rows hold the most squared log-Y error as 
           "posterior": "the one with the largest expected reduction of the coefficients' predicted error."}
 
 
+_POSTERIOR_NOTE = ("These shares are of this run's materials: the posterior's settings were chosen on the default "
+                   "seed's, and on another draw (--eval-seed 1) bar 2 is not met at any stop (docs/adaptive-capture.md, "
+                   "\"A second draw of materials\"); --adaptive-predictor probes holds it more often.")
+_PROBES_NOTE = ("The loop shot a probe, a group drawn at random, every third step after the start design, and predicted "
+                "the error of the groups it left from the probes' (a regression on the committee's disagreement, from "
+                "the fifth probe on; a target is not tested before): no setting of it was chosen on these materials "
+                "besides that schedule. The probes cost shots to a given error (docs/adaptive-capture.md, \"Probe "
+                "groups in the loop\").")
+
+
 def adaptive_sections(section: dict[str, Any] | None) -> list[dict[str, Any]]:
     """The acquisition report's section on adaptive capture (:func:`evaluate_adaptive`'s summary)."""
     if not section:
@@ -540,14 +574,17 @@ def adaptive_sections(section: dict[str, Any] | None) -> list[dict[str, Any]]:
     for cls, c in sorted(bars["shots_to_fixed_n400"].items()):
         rows.append([cls, c["n_s"], round(c["mean_shots"], 1), round(c["ratio"], 2), c["never"],
                      round(c["ratio_evaluation"], 2) if "ratio_evaluation" in c else "-"])
-    mats = [["material", "class", "shots", "true at stop [%]", "predicted [%]", "CV predicted [%]",
-             "fixed n400 [%]", "predicted time [s]"]]
+    probes = "probes" in bars.get("predictor", [])
+    mats = [["material", "class", "shots", "true at stop [%]", "predicted [%]", "CV predicted [%]"]
+            + (["probes' prediction [%]"] if probes else []) + ["fixed n400 [%]", "predicted time [s]"]]
     for mid, rec in section["materials"].items():
         last = rec["steps"][-1]
         n400 = next(f for f in rec["fixed"] if f["n_thesis"] == THESIS_N_S[-1])
         mats.append([mid, rec["class"], rec["n_shots"], round(100 * last["true"], 2), round(100 * last["predicted"], 2),
-                     round(100 * last["predicted_cv"], 2), round(100 * n400["error"], 2),
-                     round(rec["predicted_time"]["total_s"], 1)])
+                     round(100 * last["predicted_cv"], 2)]
+                    + ([round(100 * last["predicted_probes"], 2) if last.get("predicted_probes") is not None
+                        else "-"] if probes else [])
+                    + [round(100 * n400["error"], 2), round(rec["predicted_time"]["total_s"], 1)])
     share = bars["share_within_25pct"]
     settings = next(iter(section["materials"].values())).get("settings", {})
     return [{"title": "Adaptive capture (leave-one-out; docs/adaptive-capture.md)",
@@ -563,14 +600,14 @@ def adaptive_sections(section: dict[str, Any] | None) -> list[dict[str, Any]]:
                       f"Bar 1 (>= 2x fewer shots than fixed n_s = 400 to its error, every structured class): "
                       f"{'met' if bars['bar1_met'] else 'not met'}. Bar 2 (prediction at the stop within 25 % "
                       f"of the true error on >= 90 % of materials): {'met' if bars['bar2_met'] else 'not met'} "
-                      f"(posterior {100 * share['posterior']:.0f} %, cross-validation {100 * share['cv']:.0f} %), "
+                      f"(the loop's predictor: {', '.join(bars.get('predictor', ['posterior']))}; posterior "
+                      f"{100 * share['posterior']:.0f} %, cross-validation {100 * share['cv']:.0f} %"
+                      + (f", probes {100 * share['probes']:.0f} %" if "probes" in share else "") + "), "
                       "at the budget's stop. Stopped instead at a target (the fixed random swap's error at n_s, "
                       "the loop's steps up to it): "
                       + "; ".join(f"{n}: {100 * t['share_within_25pct']:.0f} % within 25 %, the true error up to "
                                   f"{t['true_over_target_max']:.2f}x the target"
                                   for n, t in bars.get("at_target_stop", {}).items()) + ". "
-                      "These shares are of this run's materials: the predictor's settings were chosen on the "
-                      "default seed's, and on another draw (--eval-seed 1) bar 2 is not met at any stop "
-                      "(docs/adaptive-capture.md, \"A second draw of materials\")."],
+                      + (_PROBES_NOTE if probes else _POSTERIOR_NOTE)],
              "tables": [rows, mats],
              "figures": [{"file": section["figure"], "caption": "log Y error against shots, every held-out material"}]}]

@@ -21,7 +21,10 @@ group is one shot and ``n_cam`` rows of ``B``. The loop (:func:`run_adaptive`):
 
 The reconstruction's measured rows are either the basis' fit (paper 4 eq. 10) or fused with their
 measurements (:func:`fuse_measured`, :meth:`AdaptiveState.reconstruction`). The predictor's model residual
-comes from the start design's rows only (groups chosen before any data, an unbiased sample).
+comes from the start design's rows only (groups chosen before any data, an unbiased sample). With
+``predictor='probes'`` every :data:`PROBE_EVERY`-th step after the start design is a **probe**, a group drawn
+uniformly from the unmeasured ones that the committee's choice does not see, and the unmeasured rows' error is
+estimated from the probes' leave-one-group-out errors (:meth:`AdaptiveState.probe_estimates`, a survey estimate).
 
 Model (per texel ``j``; ``x_i`` the row ``i`` of :math:`U\\Sigma`, coefficients :math:`c = \\Sigma d`):
 
@@ -65,12 +68,20 @@ from btfcore.acquisition.reconstruct import LAMBDA_ALS
 from btfcore.acquisition.strategies import Geometry, row_groups
 from btfcore.model.colour import LOG_YUV_EPS, REC709_LUMA
 
-__all__ = ["MEASURED_ROWS", "PREDICTORS", "SELECTIONS", "WEIGHTINGS", "AdaptiveResult", "AdaptiveState", "Step",
-           "expected_log_error", "fused_error", "group_pairs", "group_rows", "fuse_measured", "log_y_error",
-           "run_adaptive", "shot_costs", "start_groups"]
+__all__ = ["MEASURED_ROWS", "PREDICTION_KEYS", "PREDICTORS", "SELECTIONS", "WEIGHTINGS", "AdaptiveResult",
+           "AdaptiveState", "Step", "expected_log_error", "fused_error", "group_pairs", "group_rows", "fuse_measured", "log_y_error",
+           "first_stop", "probe_group", "run_adaptive", "shot_costs", "start_groups"]
 
-#: The error predictors every step records; the first stops the loop (docs/adaptive-capture.md).
-PREDICTORS: tuple[str, ...] = ("posterior", "cv")
+#: The error predictors: each step records the first two, and ``probes`` where the loop shoots probe groups; the one
+#: chosen stops the loop (docs/adaptive-capture.md, "The predicted error").
+PREDICTORS: tuple[str, ...] = ("posterior", "cv", "probes")
+#: The step record's field of each predictor's prediction.
+PREDICTION_KEYS: dict[str, str] = {"posterior": "predicted", "cv": "predicted_cv", "probes": "predicted_probes"}
+#: ``predictor='probes'``: every PROBE_EVERY-th step from the start design's end shoots a group drawn uniformly from the
+#: unmeasured ones, and from the PROBE_MIN-th probe on their leave-one-group-out errors estimate the unmeasured rows'
+#: (docs/adaptive-capture.md, "Probe groups": 3 and 5 were the study's only settings, not tuned).
+PROBE_EVERY = 3
+PROBE_MIN = 5
 #: Row weightings of the solve: paper 4's eq. 10 as is, or rows relative to their brightness.
 WEIGHTINGS: tuple[str, ...] = ("none", "relative")
 #: How the next group is chosen: the coefficients' posterior, or a committee of other bases (docs/adaptive-capture.md).
@@ -152,6 +163,8 @@ class Step:
     true: float | None
     residual_s: float
     cpu_s: float
+    predicted_probes: float | None = None       # predictor='probes' only (the posterior's before PROBE_MIN probes)
+    probe: bool = False                         # a probe group (drawn uniformly, not chosen)
 
     def to_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)
@@ -243,6 +256,11 @@ class AdaptiveState:
         n_c = len(range(n_sub)[self.committee_cols])
         self.committee_M = [self.lam ** 2 * np.eye(Xc.shape[1]) for Xc in self.committee]
         self.committee_b = [np.zeros((Xc.shape[1], n_c)) for Xc in self.committee]
+        # probe groups (predictor='probes'): the committee is blind to their data; their share of M and of A^T y
+        # on the committee's texels gives the class basis' fit without them
+        self.probes: list[int] = []
+        self.probe_M = np.zeros((self.k, self.k))
+        self.probe_b = np.zeros((self.k, n_c))
 
     # ------------------------------------------------------------------ update
 
@@ -250,7 +268,7 @@ class AdaptiveState:
         """Rows ``(n_cam,)`` of one group (all cameras, in camera order)."""
         return group_rows(np.array([group]), self.geometry)[0]
 
-    def add(self, group: int, measured: np.ndarray, gain: np.ndarray) -> None:
+    def add(self, group: int, measured: np.ndarray, gain: np.ndarray, probe: bool = False) -> None:
         """Add one group's measurement: a rank-``n_cam`` update of :math:`M` and :math:`A^T y`.
 
         Parameters
@@ -261,6 +279,9 @@ class AdaptiveState:
             The group's rows (cameras in order), linear RGB.
         gain : (n_cam,) ndarray
             Electrons per unit radiance of each image (its exposure).
+        probe : bool
+            A probe group (drawn uniformly, :func:`run_adaptive`'s ``predictor='probes'``): the reconstruction
+            and the predictor use it, the committee's choice (:meth:`disagreement`) does not see it.
         """
         if group in self.groups:
             raise ValueError(f"group {group} is already measured")
@@ -280,6 +301,11 @@ class AdaptiveState:
         if self.measured_rows == "fused":
             self.measured.append(y.astype(np.float32))
         y_c = sw * (y_sub[:, self.committee_cols] @ REC709_LUMA)
+        if probe:
+            self.probes.append(int(group))
+            self.probe_M += a.T @ a
+            self.probe_b += a.T @ y_c
+            return
         for Xc, Mc, bc in zip(self.committee, self.committee_M, self.committee_b):
             a = Xc[rows].astype(np.float64) * sw
             Mc += a.T @ a                                             # rank-n_cam updates, as M's
@@ -402,6 +428,8 @@ class AdaptiveState:
             unmeasured entries by :math:`s^2` plus :func:`expected_log_error` of the variance
             :math:`x_i \\mathrm{Cov}\\, x_i^T t_j^2` and the regulariser's bias squared;
             ``cv``: unmeasured rows by the mean leave-one-group-out log error of the measured groups;
+            ``probes`` (from :data:`PROBE_MIN` probe groups on): unmeasured rows by the regression estimator
+            of :meth:`probe_estimates`;
             ``s``: the estimated relative model residual :math:`s`.
         """
         m = model or self._model()
@@ -425,7 +453,10 @@ class AdaptiveState:
             measured = float(np.sum(s2 * (1.0 - m["H"]))) * len(self.sub)   # measured rows: s^2 (1 - h_mm)
         post = np.sqrt((measured + unmeasured_error) / ss)
         cv = np.sqrt((measured + self._cv_row_mse(m) * unmeasured.sum() * len(self.sub)) / ss)
-        return {"posterior": float(post), "cv": float(cv), "s": float(np.sqrt(s2))}
+        out = {"posterior": float(post), "cv": float(cv), "s": float(np.sqrt(s2))}
+        if len(self.probes) >= PROBE_MIN:
+            out["probes"] = float(np.sqrt((measured + self.probe_estimates(m)["greg"] * len(self.sub)) / ss))
+        return out
 
     def _cv_row_mse(self, m: dict) -> float:
         """Mean squared log-Y error of the measured groups, each predicted from the others (exact for the
@@ -449,6 +480,49 @@ class AdaptiveState:
         a = self.X[self.rows[sl]] * sw
         res = sw * (ys[sl] - m["Yhat"][self.rows[sl]])
         return ys[sl] - np.linalg.solve(np.eye(n_cam) - a @ m["Minv"] @ a.T, res) / sw     # y - (y - yhat^(-G))
+
+    def probe_errors(self, model: dict | None = None) -> np.ndarray:
+        """Each probe group's squared log-Y error ``(n_probes,)`` predicted from the other groups
+        (:meth:`group_held_out`), the texel mean summed over its rows: lit entries less their sensor noise's
+        share (:math:`v / y^2`), entries at or below the read noise their fit's log distance to eps, as
+        :func:`fused_error` counts a fused entry. A probe is drawn uniformly from the unmeasured groups, so this
+        is a sample of the error an unmeasured group holds."""
+        m = model or self._model()
+        eps, cap, n_cam = LOG_YUV_EPS, np.log(1 / LOG_YUV_EPS) ** 2, self.geometry.n_cam
+        ys = self.y @ REC709_LUMA
+        v = luminance_noise(self.y, self.gain, self.noise)
+        out = np.zeros(len(self.probes))
+        for j, group in enumerate(self.probes):
+            i = self.groups.index(group)
+            sl = slice(i * n_cam, (i + 1) * n_cam)
+            log_pred = np.log(np.maximum(self.group_held_out(m, ys, i), eps))
+            y = ys[sl]
+            lit = (y * self.gain[sl][:, None] > self.noise.read_noise_e) & (y > eps)
+            lit_error = np.minimum((log_pred - np.log(np.maximum(y, eps))) ** 2, cap) - v[sl] / np.maximum(y, eps) ** 2
+            e = np.where(lit, lit_error, (log_pred - np.log(eps)) ** 2)
+            out[j] = max(float(e.mean(axis=1).sum()), 0.0)
+        return out
+
+    def probe_estimates(self, model: dict | None = None) -> dict[str, float]:
+        """Survey estimates of the unmeasured groups' summed squared log-Y error (texel means summed over rows)
+        from the probe groups' :meth:`probe_errors` ``e``, with ``d`` the committee's :meth:`disagreement`
+        (blind to the probes, so known alike for the probes and the unmeasured groups ``U``) as the auxiliary:
+
+        ``mean``: :math:`n_U \\bar e`; ``ratio``: :math:`\\sum_U d \\sum_P e / \\sum_P d`; ``greg`` (the
+        generalised regression estimator, the loop's): :math:`n_U (\\bar e_P + b (\\bar d_U - \\bar d_P))`, ``b``
+        the probes' least-squares slope of ``e`` on ``d``, at least 0 (docs/adaptive-capture.md, "Probe groups").
+        """
+        m = model or self._model()
+        e, d = self.probe_errors(m), self.disagreement(m)
+        unmeasured = np.isfinite(d)
+        unmeasured[self.probes] = False
+        n_u = int(unmeasured.sum())
+        if n_u == 0 or len(e) < 2:
+            return {"mean": n_u * float(np.mean(e)) if len(e) else 0.0, "ratio": 0.0, "greg": 0.0}
+        d_p, d_u = d[self.probes], d[unmeasured]
+        slope = float(np.cov(d_p, e)[0, 1]) / max(float(np.var(d_p, ddof=1)), 1e-300)
+        return {"mean": n_u * float(e.mean()), "ratio": float(d_u.sum() * e.sum()) / max(float(d_p.sum()), 1e-300),
+                "greg": max(n_u * (float(e.mean()) + slope * float(d_u.mean() - d_p.mean())), 0.0)}
 
     # ------------------------------------------------------------------ selection
 
@@ -490,26 +564,50 @@ class AdaptiveState:
         Returns
         -------
         gain : (n_groups,) ndarray
-            ``-inf`` for groups already measured.
+            ``-inf`` for groups already measured (probe groups included).
+        """
+        out = self.disagreement(model).copy()
+        out[self.probes] = -np.inf
+        return out
+
+    def disagreement(self, model: dict | None = None) -> np.ndarray:
+        """:meth:`committee_gains` blind to the probe groups' data: the class basis and the committee fitted to
+        the other measured rows, probe groups scored as unmeasured ones. Kept in ``model`` (the state's
+        :meth:`_model`), which the predictor and the next choice share.
+
+        Returns
+        -------
+        d : (n_groups,) ndarray
+            ``-inf`` for measured groups other than probes.
         """
         if not self.committee:
             raise ValueError("the committee selection needs other bases (committee=); none were given")
         m = model or self._model()
+        if "disagreement" in m:
+            return m["disagreement"]
         eps = np.float32(LOG_YUV_EPS)
         cols = self.committee_cols
+        seen = np.repeat(~np.isin(np.asarray(self.groups, dtype=np.int64), self.probes), self.geometry.n_cam)
+        rows = self.rows[seen]
+        if self.probes:                     # the class basis' fit without the probes' rows
+            by = (self.b.reshape(self.k, self.n_tx, 3)[:, self.sub] @ REC709_LUMA)[:, cols]
+            Y0 = self.X @ np.linalg.solve(self.M - self.probe_M, by - self.probe_b)          # eq. (10) of paper 4
+        else:
+            Y0 = m["Yhat"][:, cols]
         # the fits and logs in float32 (their cost dominates; the disagreement needs no more digits)
-        log0 = np.log(np.maximum(m["Yhat"][:, cols].astype(np.float32), eps))
-        logm = np.log(np.maximum((self.y[:, cols] @ REC709_LUMA).astype(np.float32), eps))
-        e0 = float(np.mean((log0[self.rows] - logm) ** 2))
+        log0 = np.log(np.maximum(Y0.astype(np.float32), eps))
+        logm = np.log(np.maximum((self.y[seen][:, cols] @ REC709_LUMA).astype(np.float32), eps))
+        e0 = float(np.mean((log0[rows] - logm) ** 2))
         dis = np.zeros_like(log0)
         for Xc, Mc, bc in zip(self.committee, self.committee_M, self.committee_b):
             logc = np.log(np.maximum(Xc @ np.linalg.solve(Mc, bc).astype(np.float32), eps))   # eq. (10) of paper 4
-            vote = min(1.0, e0 / max(float(np.mean((logc[self.rows] - logm) ** 2)), 1e-300)) ** COMMITTEE_POWER
+            vote = min(1.0, e0 / max(float(np.mean((logc[rows] - logm) ** 2)), 1e-300)) ** COMMITTEE_POWER
             dis += vote * (logc - log0) ** 2
         per_row = dis.mean(axis=1) / len(self.committee)
-        cand = np.setdiff1d(np.arange(self.n_groups), np.asarray(self.groups, dtype=np.int64))
+        cand = np.setdiff1d(np.arange(self.n_groups), np.setdiff1d(self.groups, self.probes))
         out = np.full(self.n_groups, -np.inf)
         out[cand] = per_row[group_rows(cand, self.geometry)].sum(axis=1)
+        m["disagreement"] = out
         return out
 
     def _gains(self, Minv: np.ndarray, Q: np.ndarray, G: np.ndarray, N: np.ndarray,
@@ -740,6 +838,16 @@ def stop_index(predicted: Sequence[float], n_shots: Sequence[int], target: float
     return None
 
 
+def first_stop(settings: dict[str, Any]) -> int:
+    """The fewest shots a loop with these ``settings`` (:attr:`AdaptiveResult.settings`) stops at for a target:
+    the start design's, and with ``predictor='probes'`` the shot of its ``probe_min``-th probe, from which its
+    prediction is the probes' (before, there is no sample of the unmeasured rows to stop on)."""
+    n0 = int(settings.get("n_start", 1))
+    if settings.get("predictor") != "probes":
+        return n0
+    return n0 + int(settings.get("probe_every", PROBE_EVERY)) * (int(settings.get("probe_min", PROBE_MIN)) - 1) + 1
+
+
 def _check_rules(predictor: str, select: str, committee: Sequence[tuple[np.ndarray, np.ndarray]]) -> None:
     """:func:`run_adaptive`'s stop and choice rules are known (bad input raises, naming the argument)."""
     if predictor not in PREDICTORS:
@@ -748,6 +856,27 @@ def _check_rules(predictor: str, select: str, committee: Sequence[tuple[np.ndarr
         raise ValueError(f"select {select!r} is unknown; choose one of {', '.join(SELECTIONS)}")
     if select == "committee" and not committee:
         raise ValueError("select='committee' needs other bases (committee=); none were given")
+    if predictor == "probes" and select != "committee":
+        raise ValueError("predictor='probes' needs select='committee' (its estimate regresses on the committee's "
+                         "disagreement)")
+
+
+def probe_group(groups: Sequence[int], n_groups: int, seed: int) -> int:
+    """A probe: a group drawn uniformly from those not in ``groups``, seeded by ``(seed, len(groups))`` so that a
+    replayed run draws the same."""
+    cand = np.setdiff1d(np.arange(n_groups), np.asarray(groups, dtype=np.int64))
+    return int(np.random.default_rng([seed, len(groups)]).choice(cand))
+
+
+def _next_group(state: AdaptiveState, replay: Sequence[int], first: Sequence[int], probe: bool, seed: int,
+                choose: Callable[[], int]) -> int:
+    """:func:`run_adaptive`'s next group: a replayed one, the start design's, a probe, or ``choose()``'s."""
+    n = len(state.groups)
+    if n < len(replay):
+        return int(replay[n])
+    if n < len(first):
+        return int(first[n])
+    return probe_group(state.groups, state.n_groups, seed) if probe else choose()
 
 
 def run_adaptive(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, noise: SensorNoise,
@@ -781,10 +910,15 @@ def run_adaptive(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, noise: Se
         :math:`\\lambda` of the Tikhonov prior.
     n_start : int, optional
         Groups chosen before any data (:func:`start_groups`); default :math:`\\lceil 2k / n_{cam}\\rceil`.
-    predictor : {'posterior', 'cv'}
-        Which prediction the target is tested on (both are recorded).
+    predictor : {'posterior', 'cv', 'probes'}
+        Which prediction the target is tested on (the first two are always recorded). ``probes`` (needs
+        ``select='committee'``) makes every :data:`PROBE_EVERY`-th step from the start design's end a probe, a
+        group drawn uniformly from the unmeasured ones (:func:`probe_group`), which the committee's choice does
+        not see, and predicts the unmeasured rows' error from the probes' (:meth:`AdaptiveState.probe_estimates`;
+        the posterior's prediction until :data:`PROBE_MIN` probes, when the loop does not stop at a target:
+        :func:`first_stop`).
     seed : int
-        Seed of the predictor's texel subset.
+        Seed of the predictor's texel subset and of the probe draws.
     score : callable, optional
         ``score(B) -> true error`` of the reconstruction ``B`` (n_lv, n_tx, 3)
         (:meth:`AdaptiveState.reconstruction`); simulated data only.
@@ -827,45 +961,41 @@ def run_adaptive(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, noise: Se
     state.unbiased_groups = n0                                        # the start design, chosen before any data
     replay = [int(g) for g in replay]
     first = start_groups(U, sigma, geometry, n0, lam) if len(replay) < n0 else []
+    settings = {"target": target, "budget": budget, "lam": lam, "n_start": n0, "predictor": predictor,
+                "weighting": weighting, "k": state.k, "patience": patience, "select": select,
+                "measured_rows": measured_rows, "committee": len(committee), "n_cam": geometry.n_cam,
+                **({"probe_every": PROBE_EVERY, "probe_min": PROBE_MIN} if predictor == "probes" else {}),
+                **({"shot_s": shot_s, "move_s": move_s} if move_s else {})}
     steps: list[Step] = []
     stopped = "budget"
     model = None
     while len(state.groups) < budget:
         t0 = time.process_time()
-        if len(state.groups) < len(replay):
-            group = replay[len(state.groups)]
-        elif len(state.groups) < n0:
-            group = first[len(state.groups)]
-        else:
-            group = int(np.argmax(gains(model) / shot_costs(state.groups, geometry, shot_s, move_s)))
+        n = len(state.groups)
+        probe = predictor == "probes" and n >= n0 and (n - n0) % PROBE_EVERY == 0
+        group = _next_group(state, replay, first, probe, seed, lambda: int(np.argmax(
+            gains(model) / shot_costs(state.groups, geometry, shot_s, move_s))))
         rows = state.rows_of(group)
         t_choose = time.process_time() - t0
         y, gain = measure(group, rows)
         t0 = time.process_time()
-        state.add(group, y, gain)
+        state.add(group, y, gain, probe=probe)
         model = state._model()
         pred = state.predict(model)
         cpu = t_choose + time.process_time() - t0
         t, led = divmod(group, geometry.n_leds)
         step = Step(len(steps), group, int(t), int(led), rows.tolist(), len(state.groups), pred["posterior"],
-                    pred["cv"], None if score is None else float(score(state.reconstruction(model))), pred["s"], cpu)
+                    pred["cv"], None if score is None else float(score(state.reconstruction(model))), pred["s"], cpu,
+                    pred.get("probes", pred["posterior"]) if predictor == "probes" else None, probe)
         steps.append(step)
         if on_step is not None:
             on_step(step)
-        key = "predicted" if predictor == "posterior" else "predicted_cv"
-        if stop_index([getattr(s, key) for s in steps], [s.n_shots for s in steps], target, n0,
-                      patience) is not None:
+        if stop_index([getattr(s, PREDICTION_KEYS[predictor]) for s in steps], [s.n_shots for s in steps], target,
+                      first_stop(settings), patience) is not None:
             stopped = "target"
             break
     if len(replay) > len(steps):
         raise ValueError(f"{len(replay)} groups to replay, but the loop stopped ({stopped}) after {len(steps)} "
                          "steps: the groups were not recorded by a run of these inputs")
     return AdaptiveResult(steps, stopped, np.asarray(state.groups, dtype=np.int64), state.rows.copy(),
-                          state.coefficients(), {"target": target, "budget": budget, "lam": lam, "n_start": n0,
-                                                 "predictor": predictor, "weighting": weighting, "k": state.k,
-                                                 "patience": patience,
-                                                 "select": select, "measured_rows": measured_rows,
-                                                 "committee": len(committee),
-                                                 "n_cam": geometry.n_cam,
-                                                 **({"shot_s": shot_s, "move_s": move_s} if move_s else {})},
-                          replayed=len(replay))
+                          state.coefficients(), settings, replayed=len(replay))

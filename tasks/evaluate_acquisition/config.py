@@ -7,7 +7,7 @@ import json
 from dataclasses import asdict, dataclass
 from typing import Any
 
-from btfcore.acquisition.adaptive import MEASURED_ROWS, SELECTIONS
+from btfcore.acquisition.adaptive import MEASURED_ROWS, PREDICTORS, SELECTIONS
 from btfcore.dome import DEVICE_NAMES, Device, get_device
 from btfcore.simulate.materials import MATERIAL_CLASSES
 from btfcore.simulate.nonideal import IDEAL, DomeNonIdeality
@@ -72,6 +72,10 @@ class EvaluationConfig:
     adaptive_rows : {'fused', 'model'}
         The loop's and the fixed samplings' measured rows: fused with the measurements, or the basis'
         fit only (:data:`btfcore.acquisition.adaptive.MEASURED_ROWS`). Not part of the scores key.
+    adaptive_predictor : {'posterior', 'cv', 'probes'}
+        The prediction the loop's bar 2 is judged on (:data:`btfcore.acquisition.adaptive.PREDICTORS`;
+        ``probes`` also shoots the probe groups, needs ``adaptive_select='committee'``). Not part of the
+        scores key.
     non_ideal : DomeNonIdeality
         The dome's non-idealities applied to the simulated measurements
         (:mod:`btfcore.acquisition.nonideal_measurement`); the ideal dome by
@@ -96,6 +100,7 @@ class EvaluationConfig:
     adaptive: bool = True
     adaptive_select: str = "committee"
     adaptive_rows: str = "fused"
+    adaptive_predictor: str = "posterior"
     non_ideal: DomeNonIdeality = IDEAL
 
     def __post_init__(self) -> None:
@@ -118,9 +123,12 @@ class EvaluationConfig:
                             f"got {self.render_materials}")
         if not 0 < self.abrdf_k_fraction <= 1:
             problems.append(f"abrdf_k_fraction must lie in (0, 1], got {self.abrdf_k_fraction}")
-        for name, known in (("adaptive_select", SELECTIONS), ("adaptive_rows", MEASURED_ROWS)):
+        for name, known in (("adaptive_select", SELECTIONS), ("adaptive_rows", MEASURED_ROWS),
+                            ("adaptive_predictor", PREDICTORS)):
             if getattr(self, name) not in known:
                 problems.append(f"{name} {getattr(self, name)!r} is unknown; choose one of {', '.join(known)}")
+        if self.adaptive_predictor == "probes" and self.adaptive_select != "committee":
+            problems.append("adaptive_predictor 'probes' needs adaptive_select 'committee'")
         if not isinstance(self.non_ideal, DomeNonIdeality):
             problems.append(f"non_ideal must be a DomeNonIdeality, got {type(self.non_ideal).__name__}")
         if problems:

@@ -52,7 +52,7 @@ MODEL_DATABASE_VERSION = 1
 
 #: Config fields that only affect what is rendered, kept or added beside the scores, not the scores.
 _RENDER_FIELDS = ("render_materials", "render_size", "keep_reconstructions", "adaptive", "adaptive_select",
-                  "adaptive_rows")
+                  "adaptive_rows", "adaptive_predictor")
 
 
 def _hash(payload: Any) -> str:

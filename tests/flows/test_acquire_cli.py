@@ -71,6 +71,29 @@ def test_acquire_needs_adaptive_and_a_valid_target(acquisition_evaluation, model
     code, _, err = run_btf("acquire", "--adaptive", "--target-error", "0.1", *base[:4], "--class", "cloth",
                            *base[6:])
     assert code == 2 and "cloth" in err
+    code, _, err = run_btf("acquire", "--adaptive", "--target-error", "0.1", "--predictor", "probes", "--select",
+                           "posterior", *base)
+    assert code == 2 and "--predictor probes needs --select committee" in err, err
+
+
+def test_acquire_with_probe_groups(acquisition_evaluation, model_report, run_btf, tmp_path):
+    """``--predictor probes``: every third shot after the start design a drawn group, the summary's prediction the
+    probes' (from the fifth on), the report's steps marking the probes."""
+    db = acquisition_evaluation[0].parent / "acquisition-database"
+    truth = sorted(db.glob("*-carpet.zarr"))[0]
+    out = tmp_path / "probes"
+    code, stdout, err = run_btf("acquire", "--adaptive", "--target-error", "0.001", "--budget", "40", "--truth",
+                                truth, "--model", model_report, "--class", "carpet", "--predictor", "probes",
+                                "--no-compare", "--out", out)
+    assert code == 0, err
+    summary, rec = json.loads(stdout), json.loads((out / "report.json").read_text())["record"]
+    n0, steps = rec["settings"]["n_start"], rec["steps"]
+    assert rec["settings"]["predictor"] == summary["predictor"] == "probes" and len(steps) == 40
+    assert [s["step"] for s in steps if s["probe"]] == list(range(n0, 40, 3))
+    assert summary["predicted_error"] == steps[-1]["predicted_probes"] != steps[-1]["predicted"]
+    assert summary["predicted_error_posterior"] == steps[-1]["predicted"]
+    assert "probes&#x27; prediction [%]" in (out / "report.html").read_text() or \
+        "probes' prediction [%]" in (out / "report.html").read_text()
 
 
 def test_acquire_refuses_the_outputs_of_another_run_unless_overwrite(acquisition_evaluation, model_report, run_btf,

@@ -71,6 +71,25 @@ def test_bars_count_shots_to_the_fixed_error():
     assert bars["shots_to_fixed_n400"]["stone"]["never"] == 1 and not bars["bar1_met"]
 
 
+def test_bars_judge_the_loops_own_predictor():
+    """A loop run with predictor='probes' is judged on its probes' prediction, at the budget and at the target
+    stops; the posterior's share is still reported."""
+    from tasks.adaptive import target_stops
+
+    trues, post, probes = [0.5, 0.4, 0.3, 0.2], [0.1, 0.1, 0.1, 0.1], [0.5, 0.4, 0.3, 0.21]
+    steps = [{"n_shots": i + 1, "true": t, "predicted": p, "predicted_cv": p, "predicted_probes": q}
+             for i, (t, p, q) in enumerate(zip(trues, post, probes))]
+    records = {"a": {"class": "carpet", "n_shots": 4, "steps": steps,
+                     "settings": {"n_start": 1, "predictor": "probes", "patience": 1, "probe_every": 1,
+                                  "probe_min": 2},
+                     "fixed": [{"n_thesis": 400, "n_shots": 4, "error": 0.3}]}}
+    bars = adaptive_bars(records)
+    assert bars["predictor"] == ["probes"] and bars["bar2_met"] and bars["share_within_25pct_stop"] == 1.0
+    assert bars["share_within_25pct"] == {"posterior": 0.0, "cv": 0.0, "probes": 1.0}
+    stop = target_stops(records)["n_s=400"]      # step 3 (0.3 by the probes, its 2nd probe's shot), not step 1
+    assert stop["share_within_25pct"] == 1.0 and stop["true_over_target_max"] == pytest.approx(1.0)
+
+
 def test_report_shows_both_comparisons():
     """The report's class table holds the bar's ratio (same solve) and the ratio to the evaluation's own
     paper-4 reconstruction of fixed n_s = 400 (``fixed_n400_evaluation``), '-' where that is not recorded."""
@@ -124,6 +143,8 @@ def test_evaluation_config_names_an_unknown_adaptive_choice():
         EvaluationConfig(adaptive_select="oracle")
     with pytest.raises(ValueError, match="adaptive_rows 'both' is unknown; choose one of model, fused"):
         EvaluationConfig(adaptive_rows="both")
+    with pytest.raises(ValueError, match="adaptive_predictor 'probes' needs adaptive_select 'committee'"):
+        EvaluationConfig(adaptive_predictor="probes", adaptive_select="posterior")
 
 
 def test_target_stops_take_the_first_step_after_the_start_whose_prediction_reaches_it():
