@@ -105,3 +105,24 @@ def test_acquire_resumes_after_a_kill_at_each_point(btf: Btf, acquisition_evalua
     btf.killed("chunk-done:1", *args(out, "--seed", "1", "--overwrite"))
     assert _files(out) == ["journal.json", "plans/step_000.csv", "plans/step_000.json"]
     assert _journal(out)["inputs"]["seed"] == 1 and len(_journal(out)["steps"]) == 1
+
+
+def test_a_probing_run_resumes_with_the_same_probes(btf: Btf, acquisition_evaluation, model_report, tmp_path):
+    """``--predictor probes``: killed after a probe step and resumed, the steps (probes drawn, their estimate) and
+    the report equal the uninterrupted run's: the step index says which steps are probes, and the draw is seeded."""
+    truth = sorted((acquisition_evaluation[0].parent / "acquisition-database").glob("*-carpet.zarr"))[0]
+
+    def args(out: Path) -> tuple[Any, ...]:
+        return ("acquire", "--adaptive", "--target-error", "0.001", "--budget", 20, "--truth", truth, "--model",
+                model_report, "--class", "carpet", "--predictor", "probes", "--no-compare", "--out", out)
+
+    reference, out = tmp_path / "reference", tmp_path / "killed"
+    btf.ok(*args(reference))
+    steps = _journal(reference)["steps"]
+    n0 = json.loads((reference / "report.json").read_text())["record"]["settings"]["n_start"]
+    assert [s["step"] for s in steps if s["probe"]] == list(range(n0, 20, 3))
+    btf.killed(f"chunk-done:{n0 + 2}", *args(out))                  # after the first probe and a chosen step
+    summary = btf.ok(*args(out)).summary()
+    assert summary["reused"] == {"steps": [n0 + 2, 20]} and summary["predictor"] == "probes"
+    for name in ("journal.json", "report.json"):
+        assert _json(out / name) == _json(reference / name), name

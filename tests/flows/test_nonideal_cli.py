@@ -31,6 +31,7 @@ def test_a_spec_reaches_the_configs():
     args = argparse.Namespace(db="d", out="o", eval_device="tiny", eval_turntable=1, eval_texture=12,
                               eval_materials_per_class=2, eval_seed=0, eval_render=0,
                               no_adaptive=True, adaptive_select="committee", adaptive_rows="fused",
+                              adaptive_predictor="posterior",
                               non_ideal="realistic,hot_pixel_fraction=0")
     config = _evaluation_config(args)
     assert config.non_ideal.hot_pixel_fraction == 0 and config.non_ideal.single_gain_db == 10.0

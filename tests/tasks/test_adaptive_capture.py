@@ -109,6 +109,14 @@ def test_report_shows_both_comparisons():
     assert "--eval-seed 1" in section["text"][-1]      # bar 2's shares are of one draw of materials
     assert table[1][0] == "carpet" and table[1][-1] == 4.0
     assert table[2][0] == "stone" and table[2][-1] == "-"
+    for r in records.values():                          # a loop run with probes: its prediction is shown and judged
+        r["settings"] = {"predictor": "probes", "n_start": 1}
+        for step in r["steps"]:
+            step["predicted_probes"] = step["true"]
+    section = adaptive_sections({"bars": adaptive_bars(records), "materials": records, "figure": "f.png"})[0]
+    mats = section["tables"][1]
+    assert mats[0][6] == "probes' prediction [%]" and mats[1][6] == 10.0
+    assert "probe" in section["text"][-1] and "probes 100 %" in section["text"][-1]
 
 
 def test_committee_is_every_other_materials_als_basis(tmp_path):
