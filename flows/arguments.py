@@ -305,8 +305,8 @@ def cluster(p: argparse.ArgumentParser) -> None:
 
 
 def add_adaptive_choices(p: argparse.ArgumentParser, prefix: str, what: str = "") -> None:
-    """``PREFIXselect``, ``PREFIXrows`` and ``PREFIXpredictor`` of the adaptive loop (``btf acquire``: ``--``, ``btf evaluate``:
-    ``--adaptive-``; docs/adaptive-capture.md)."""
+    """``PREFIXselect``, ``PREFIXrows`` and ``PREFIXpredictor`` of the adaptive loop (``btf acquire``: ``--``,
+    ``btf evaluate``: ``--adaptive-``; docs/adaptive-capture.md)."""
     p.add_argument(f"{prefix}select", default="committee", choices=("committee", "posterior"),
                    help=f"{what}choice of the next shot: where a committee of the model database's other "
                         "materials' ALS bases disagrees with the class basis (the error a structure the class basis "

@@ -552,14 +552,15 @@ _RULES = {"committee": "the one whose rows hold the most squared log-Y error as 
           "posterior": "the one with the largest expected reduction of the coefficients' predicted error."}
 
 
-_POSTERIOR_NOTE = ("These shares are of this run's materials: the posterior's settings were chosen on the default "
-                   "seed's, and on another draw (--eval-seed 1) bar 2 is not met at any stop (docs/adaptive-capture.md, "
-                   "\"A second draw of materials\"); --adaptive-predictor probes holds it more often.")
-_PROBES_NOTE = ("The loop shot a probe, a group drawn at random, every third step after the start design, and predicted "
-                "the error of the groups it left from the probes' (a regression on the committee's disagreement, from "
-                "the fifth probe on; a target is not tested before): no setting of it was chosen on these materials "
-                "besides that schedule. The probes cost shots to a given error (docs/adaptive-capture.md, \"Probe "
-                "groups in the loop\").")
+_POSTERIOR_NOTE = ("These shares are of this run's materials: the posterior's settings were chosen on the "
+                   "default seed's, and on another draw (--eval-seed 1) bar 2 is not met at any stop "
+                   "(docs/adaptive-capture.md, \"A second draw of materials\"); --adaptive-predictor probes holds it "
+                   "more often.")
+_PROBES_NOTE = ("The loop shot a probe, a group drawn at random, every third step after the start design, and "
+                "predicted the error of the groups it left from the probes' (a regression on the committee's "
+                "disagreement, from the fifth probe on; a target is not tested before): no setting of it was chosen "
+                "on these materials besides that schedule. The probes cost shots to a given error "
+                "(docs/adaptive-capture.md, \"Probe groups in the loop\").")
 
 
 def adaptive_sections(section: dict[str, Any] | None) -> list[dict[str, Any]]:

@@ -69,8 +69,8 @@ from btfcore.acquisition.strategies import Geometry, row_groups
 from btfcore.model.colour import LOG_YUV_EPS, REC709_LUMA
 
 __all__ = ["MEASURED_ROWS", "PREDICTION_KEYS", "PREDICTORS", "SELECTIONS", "WEIGHTINGS", "AdaptiveResult",
-           "AdaptiveState", "Step", "expected_log_error", "fused_error", "group_pairs", "group_rows", "fuse_measured", "log_y_error",
-           "first_stop", "probe_group", "run_adaptive", "shot_costs", "start_groups"]
+           "AdaptiveState", "Step", "expected_log_error", "fused_error", "group_pairs", "group_rows", "fuse_measured",
+           "log_y_error", "first_stop", "probe_group", "run_adaptive", "shot_costs", "start_groups"]
 
 #: The error predictors: each step records the first two, and ``probes`` where the loop shoots probe groups; the one
 #: chosen stops the loop (docs/adaptive-capture.md, "The predicted error").
