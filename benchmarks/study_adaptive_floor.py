@@ -1,9 +1,10 @@
 """Issue 20 study (not a speed benchmark): where the fixed n_s = 400 error sits against the class basis' floor.
 
 Bar 1 asks the adaptive loop to reach the fixed optimised sampling's n_s = 400 error in half its shots. This
-computes, for every held-out material of the structured classes, the **floor** of its leave-one-out class basis:
-the error of the loop's solve (:class:`~btfcore.acquisition.adaptive.AdaptiveState`'s relative row weights and
-the Tikhonov term of paper 4 eq. 10, every row from the basis) when *every* row is measured without noise. No
+computes, for every held-out material of the structured classes, the **floor** of its leave-one-out class basis
+(:func:`btfcore.acquisition.adaptive.basis_floor`, which the evaluation's records hold since ``ADAPTIVE_VERSION`` 8): the error
+of the loop's solve (relative row weights, the Tikhonov term of paper 4 eq. 10, every row from the basis) when
+*every* row is measured without noise. No
 sampling of rows reaches under it without the measured rows' own values (the loop and the fixed samplings fuse
 them, ``--rows fused``), and each shot measures ``n_cam`` of the ``n_lv`` rows. It prints the floor beside the
 fixed n_s = 400 error and the loop's shots to that error, read from the evaluation's report.json. A few seconds a
@@ -20,25 +21,12 @@ from pathlib import Path
 import numpy as np
 import zarr
 
-from btfcore.acquisition.adaptive import LAMBDA_ALS, WEIGHT_FLOOR
-from btfcore.model.colour import REC709_LUMA
 from study_adaptive_predictor import replay_materials, replay_parser
-from tasks.adaptive import THESIS_N_S, shots_to_reach, truth_score
-from tasks.evaluate_acquisition.graph import leave_one_out_bases
+from btfcore.acquisition.adaptive import basis_floor
+from tasks.adaptive import THESIS_N_S, shots_to_reach
+from tasks.evaluate_acquisition.graph import leave_one_out_bases, material_geometry
 
 STRUCTURED = ("carpet", "stone", "leather")
-
-
-def basis_floor(U: np.ndarray, sigma: np.ndarray, truth: np.ndarray) -> float:
-    """Relative L2 error of log Y of the loop's solve from every row of a noise-free ``truth`` ``(n_lv, n_tx, 3)``
-    (row weights ``(beta_ref / beta)^2`` as ``AdaptiveState(weighting='relative')``, eq. 10 of paper 4)."""
-    X = np.asarray(U, dtype=np.float64) * np.asarray(sigma, dtype=np.float64)[None, :]
-    beta = np.sqrt(np.mean((truth @ REC709_LUMA) ** 2, axis=1))
-    beta_ref = float(np.sqrt(np.mean(beta ** 2)))
-    sw = (beta_ref / np.maximum(beta, WEIGHT_FLOOR * beta_ref))[:, None]
-    a = X * sw
-    D = np.linalg.solve(a.T @ a + LAMBDA_ALS ** 2 * np.eye(X.shape[1]), a.T @ (sw * truth.reshape(len(X), -1)))
-    return float(truth_score(truth)((X @ D).reshape(truth.shape)))
 
 
 def main() -> None:
@@ -54,7 +42,8 @@ def main() -> None:
         als = leave_one_out_bases(f"{a.eval}/model.zarr", materials, m.material_id, config.model_settings())["als"]
         truth = np.asarray(zarr.open_group(m.path, mode="r", zarr_format=3)["btf"][...], dtype=np.float32)
         truth = truth.reshape(truth.shape[0], -1, 3)
-        floor = basis_floor(als.U, als.sigma, truth)
+        floor = basis_floor(np.asarray(als.U, dtype=np.float64), np.asarray(als.sigma, dtype=np.float64),
+                            material_geometry(m), truth)
         target = next(f["error"] for f in rec["fixed"] if f["n_thesis"] == THESIS_N_S[-1])
         shots = shots_to_reach(rec["steps"], target)
         out[m.material_id] = {"class": rec["class"], "k": int(len(als.sigma)), "floor": floor, "fixed_n400": target,

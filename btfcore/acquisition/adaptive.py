@@ -69,7 +69,7 @@ from btfcore.acquisition.strategies import Geometry, row_groups
 from btfcore.model.colour import LOG_YUV_EPS, REC709_LUMA
 
 __all__ = ["MEASURED_ROWS", "PREDICTION_KEYS", "PREDICTORS", "SELECTIONS", "WEIGHTINGS", "AdaptiveResult",
-           "AdaptiveState", "Step", "expected_log_error", "fused_error", "group_pairs", "group_rows", "fuse_measured",
+           "AdaptiveState", "Step", "basis_floor", "expected_log_error", "fused_error", "group_pairs", "group_rows", "fuse_measured",
            "log_y_error", "first_stop", "probe_group", "run_adaptive", "shot_costs", "start_groups"]
 
 #: The error predictors: each step records the first two, and ``probes`` where the loop shoots probe groups; the one
@@ -877,6 +877,27 @@ def _next_group(state: AdaptiveState, replay: Sequence[int], first: Sequence[int
     if n < len(first):
         return int(first[n])
     return probe_group(state.groups, state.n_groups, seed) if probe else choose()
+
+
+def basis_floor(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, truth: np.ndarray,
+                weighting: str = "relative", lam: float = LAMBDA_ALS) -> float:
+    """The class basis' floor on one material: the relative L2 error of log Y of the loop's solve from **every**
+    row of the noise-free ``truth`` ``(n_lv, n_tx, 3)``, every row from the basis.
+
+    Paper 4 eq. (10) with the rows' weights of :class:`AdaptiveState` (``weighting``; 'relative' refers them to
+    the first group's brightness, as the loop does), which is what adding every group to a state would give.
+    No sampling gets under it except through its measured rows' own values (``measured_rows='fused'``): where a
+    fixed sampling's error is at it, the loop goes further only by measuring the rows where the basis is wrong
+    (docs/adaptive-capture.md, "Where the fixed sampling ends").
+    """
+    state = AdaptiveState(U, sigma, geometry, SensorNoise(), lam=lam, n_tx=1, weighting=weighting)
+    truth = np.asarray(truth, dtype=np.float64).reshape(state.n_lv, -1, 3)
+    beta = np.sqrt(np.mean((truth @ REC709_LUMA) ** 2, axis=1))
+    state._weights(beta[state.rows_of(0)])                            # the reference: the first group's
+    sw = np.sqrt(state._weights(beta))[:, None]
+    a = state.X * sw
+    D = np.linalg.solve(a.T @ a + state.lam ** 2 * np.eye(state.k), a.T @ (sw * truth.reshape(state.n_lv, -1)))   # eq. (10)
+    return log_y_error((state.X @ D).reshape(truth.shape) @ REC709_LUMA, truth @ REC709_LUMA)
 
 
 def run_adaptive(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, noise: SensorNoise,

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from btfcore.acquisition.adaptive import (LUMA_NOISE_SHARE, MISFIT_MEDIAN_CAP, MISFIT_WINDOW, STOP_PATIENCE, AdaptiveState, expected_log_error, fuse_measured,
+from btfcore.acquisition.adaptive import (LUMA_NOISE_SHARE, MISFIT_MEDIAN_CAP, MISFIT_WINDOW, STOP_PATIENCE, AdaptiveState, basis_floor, expected_log_error, fuse_measured,
                                          fused_error, group_rows, log_y_error, luminance_noise, run_adaptive,
                                          shot_costs, start_groups)
 from btfcore.model.colour import LOG_YUV_EPS, REC709_LUMA
@@ -446,3 +446,24 @@ def test_a_misfit_few_rows_hold_is_bounded_by_the_median_rows():
         (spread, _, _), (capped, mean_lobe, typical) = fits["spread"], fits["lobe"]
         assert mean_lobe > 10 * typical, fits
         assert spread <= capped <= 1.5 * MISFIT_MEDIAN_CAP * typical, fits
+
+
+def test_basis_floor_is_every_group_added_noise_free():
+    """The floor equals a state given every group's noise-free rows (the loop's weights, referred to the first
+    group), the unweighted one an independent ridge solve (paper 4 eq. 10), and it vanishes inside the span."""
+    from btfcore.acquisition.reconstruct import LAMBDA_ALS
+
+    U, sigma, truth = _problem()
+    st = AdaptiveState(U, sigma, GEOMETRY, NOISE, n_tx=truth.shape[1], weighting="relative")
+    for g in range(st.n_groups):
+        st.add(g, truth[st.rows_of(g)], np.ones(GEOMETRY.n_cam))
+    every = log_y_error(st.reconstruction()[..., 0], _truth_y(truth))
+    assert basis_floor(U, sigma, GEOMETRY, truth) == pytest.approx(every, rel=1e-9)
+    assert every > 0.01                                         # the held-out material's 5 % residual
+    X = U * sigma
+    D = np.linalg.solve(X.T @ X + LAMBDA_ALS ** 2 * np.eye(X.shape[1]), X.T @ _truth_y(truth))
+    assert basis_floor(U, sigma, GEOMETRY, truth, weighting="none") == pytest.approx(
+        log_y_error(X @ D, _truth_y(truth)), rel=1e-9)
+    inside = U @ (U.T @ _truth_y(truth))
+    assert np.all(inside > 0)
+    assert basis_floor(U, sigma, GEOMETRY, np.repeat(inside[..., None], 3, axis=2)) < 1e-4

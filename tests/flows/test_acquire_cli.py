@@ -38,6 +38,8 @@ def test_acquire_adaptive_tiny(acquisition_evaluation, model_report, run_btf, tm
     assert {f["n_thesis"] for f in doc["record"]["fixed"]} == {100, 200, 400, None}
     html = (out / "report.html").read_text()
     assert "error_vs_shots.png" in html and (out / "error_vs_shots.png").exists()
+    assert 0 < doc["record"]["basis_floor"] < 1        # (the fixed samplings' fused rows may get under it)
+    assert "class basis&#x27; floor" in html                 # beside the target in the report's head
     # the time-aware choice: a run of other inputs (refused into the same --out), fewer turntable moves
     base = ("acquire", "--adaptive", "--target-error", "0.05", "--budget", "8", "--truth", truth, "--model",
             model_report, "--class", "carpet", "--no-compare", "--time-aware", "--out")

@@ -53,6 +53,7 @@ def test_adaptive_material_records_steps_and_fixed_curves(tmp_path):
     assert names == [100, 200, 400, None]
     assert all(np.isfinite(f["error"]) for f in rec["fixed"])
     assert all(s["true"] is not None for s in rec["steps"])
+    assert 0 < rec["basis_floor"] < min(f["error"] for f in rec["fixed"])      # every row, noise-free
 
 
 def test_bars_count_shots_to_the_fixed_error():
@@ -100,15 +101,18 @@ def test_report_shows_both_comparisons():
         return {"class": cls, "n_shots": len(trues), "steps": steps, "fixed_n400_evaluation": paper4,
                 "fixed": [{"n_thesis": 400, "n_shots": 8, "error": fixed}], "predicted_time": {"total_s": 1.0}}
     records = {"a": rec("carpet", [0.5, 0.3, 0.2, 0.1], 0.15, 0.4), "b": rec("stone", [0.5, 0.3], 0.25, None)}
+    records["a"]["basis_floor"] = 0.14                  # fixed n400 at 1.07x the floor; "b" before version 8: none
     bars = adaptive_bars(records)
+    assert bars["shots_to_fixed_n400"]["carpet"]["n400_at_floor"] == 1
     assert bars["shots_to_fixed_n400"]["carpet"]["ratio"] == 2.0                # 8 / 4 shots to 0.15
     assert bars["shots_to_fixed_n400"]["carpet"]["ratio_evaluation"] == 4.0     # 8 / 2 shots to 0.4
     section = adaptive_sections({"bars": bars, "materials": records, "figure": "f.png"})[0]
     table = section["tables"][0]
     assert "paper-4" in table[0][-1]
     assert "--eval-seed 1" in section["text"][-1]      # bar 2's shares are of one draw of materials
-    assert table[1][0] == "carpet" and table[1][-1] == 4.0
-    assert table[2][0] == "stone" and table[2][-1] == "-"
+    assert table[1][0] == "carpet" and table[1][-1] == 4.0 and table[1][-2] == "1 of 1"
+    assert table[2][0] == "stone" and table[2][-1] == "-" and table[2][-2] == "-"
+    assert section["tables"][1][1][-2] == 14.0 and section["tables"][1][2][-2] == "-"     # the floor per material
     for r in records.values():                          # a loop run with probes: its prediction is shown and judged
         r["settings"] = {"predictor": "probes", "n_start": 1}
         for step in r["steps"]:
