@@ -1,20 +1,20 @@
-"""Issue 20 study (not a speed benchmark): probe groups and three survey estimators of the unmeasured rows' error.
+"""Issue 20 study (not a speed benchmark): probe groups and four survey estimators of the unmeasured rows' error.
 
 The predictor's misfit comes from the start design's rows, which are not a sample of the rows the loop leaves
 unmeasured (docs/adaptive-capture.md, "A second draw of materials"). This replays the evaluation's adaptive loops
 (``study_adaptive_predictor``'s replay: the same bases, committee, simulator seeds and budget) with the loop's
 ``predictor='probes'`` (:func:`btfcore.acquisition.adaptive.run_adaptive`): every ``--every``-th step after the
-start design is a **probe**, a group drawn uniformly from the unmeasured ones, which the committee's choice does
-not see, so that a probe's leave-one-group-out error is distributed as an unmeasured group's.
+start design is a **probe**, a group drawn uniformly from the unmeasured ones of a brightness stratum in turn,
+which the committee's choice does not see, so that a probe's leave-one-group-out error is distributed as an unmeasured group's.
 
-At every step it records the loop's posterior prediction (``predicted``) and the predictions of the three
-estimates of :meth:`~btfcore.acquisition.adaptive.AdaptiveState.probe_estimates` (``mean``, ``ratio`` and
-``greg``, the loop's), the fused measured rows' predicted error added as the predictor adds it. It prints the
+At every step it records the loop's posterior prediction (``predicted``) and the predictions of the four
+estimates of :meth:`~btfcore.acquisition.adaptive.AdaptiveState.probe_estimates` (``mean``, ``ratio``, ``greg`` and
+``stratified``, the loop's), the fused measured rows' predicted error added as the predictor adds it. It prints the
 issue's bar 1 (the probes cost shots) and bar 2 at the budget's stop and the target stops
 (``tasks.adaptive.adaptive_bars``) with each estimate as the prediction from ``PROBE_MIN`` probes on (the
 posterior's before; a target tested from the loop's ``first_stop`` on). About 45 s per material at the default
 scale on one core, 2 minutes at four turntable positions (docs/adaptive-capture.md, "Probe groups"). Its replay
-of a material gives the evaluation's record of a ``--adaptive-predictor probes`` run (``greg`` equals its
+of a material gives the evaluation's record of a ``--adaptive-predictor probes`` run (``stratified`` equals its
 ``predicted_probes``).
 
     .venv/bin/python benchmarks/study_adaptive_probes.py --db acq-db-s1 --eval out-s1 --seed 1 [--every 3]
@@ -34,11 +34,11 @@ from btfcore.acquisition.adaptive import FUSE_S2_FLOOR, LOG_YUV_EPS, PROBE_MIN, 
 from study_adaptive_predictor import replay_held_out, replay_materials, replay_parser
 from tasks import adaptive as TA
 
-ESTIMATES = ("mean", "ratio", "greg")
+ESTIMATES = ("mean", "ratio", "greg", "stratified")
 
 
 def _recording(log: list[dict[str, Any]], truth: dict[str, np.ndarray]):
-    """``AdaptiveState.predict`` that appends each step's probe count and the three estimates' predictions to
+    """``AdaptiveState.predict`` that appends each step's probe count and the four estimates' predictions to
     ``log`` (the truth is scored by the loop itself)."""
     predict = AD.AdaptiveState.predict
 

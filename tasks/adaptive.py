@@ -570,10 +570,11 @@ _POSTERIOR_NOTE = ("These shares are of this run's materials: the posterior's se
                    "default seed's, and on another draw (--eval-seed 1) bar 2 is not met at any stop "
                    "(docs/adaptive-capture.md, \"A second draw of materials\"); --adaptive-predictor probes holds it "
                    "more often.")
-_PROBES_NOTE = ("The loop shot a probe, a group drawn at random, every third step after the start design, and "
-                "predicted the error of the groups it left from the probes' (a regression on the committee's "
-                "disagreement, from the fifth probe on; a target is not tested before): no setting of it was chosen "
-                "on these materials besides that schedule. The probes cost shots to a given error "
+_PROBES_NOTE = ("The loop shot a probe, a group drawn at random from one brightness quartile of the groups in "
+                "turn, every third step after the start design, and predicted the error of the groups it left from "
+                "the probes' (a regression on the committee's disagreement with an intercept per quartile, from the "
+                "fifth probe on; a target is not tested before): its estimator was chosen on the evaluation's "
+                "default materials and four other sets, its other settings were not tuned. The probes cost shots to a given error "
                 "(docs/adaptive-capture.md, \"Probe groups in the loop\").")
 
 

@@ -23,8 +23,9 @@ The reconstruction's measured rows are either the basis' fit (paper 4 eq. 10) or
 measurements (:func:`fuse_measured`, :meth:`AdaptiveState.reconstruction`). The predictor's model residual
 comes from the start design's rows only (groups chosen before any data, an unbiased sample). With
 ``predictor='probes'`` every :data:`PROBE_EVERY`-th step after the start design is a **probe**, a group drawn
-uniformly from the unmeasured ones that the committee's choice does not see, and the unmeasured rows' error is
-estimated from the probes' leave-one-group-out errors (:meth:`AdaptiveState.probe_estimates`, a survey estimate).
+uniformly from the unmeasured ones of one brightness stratum in turn (:func:`probe_group`) that the committee's
+choice does not see, and the unmeasured rows' error is estimated from the probes' leave-one-group-out errors
+(:meth:`AdaptiveState.probe_estimates`, a survey estimate).
 
 Model (per texel ``j``; ``x_i`` the row ``i`` of :math:`U\\Sigma`, coefficients :math:`c = \\Sigma d`):
 
@@ -78,10 +79,12 @@ PREDICTORS: tuple[str, ...] = ("posterior", "cv", "probes")
 #: The step record's field of each predictor's prediction.
 PREDICTION_KEYS: dict[str, str] = {"posterior": "predicted", "cv": "predicted_cv", "probes": "predicted_probes"}
 #: ``predictor='probes'``: every PROBE_EVERY-th step from the start design's end shoots a group drawn uniformly from the
-#: unmeasured ones, and from the PROBE_MIN-th probe on their leave-one-group-out errors estimate the unmeasured rows'
-#: (docs/adaptive-capture.md, "Probe groups": 3 and 5 were the study's only settings, not tuned).
+#: unmeasured ones of one of PROBE_STRATA brightness strata in turn, and from the PROBE_MIN-th probe on their
+#: leave-one-group-out errors estimate the unmeasured rows' (docs/adaptive-capture.md, "Probe groups": 3, 5 and 4
+#: were the studies' only settings, not tuned).
 PROBE_EVERY = 3
 PROBE_MIN = 5
+PROBE_STRATA = 4
 #: Row weightings of the solve: paper 4's eq. 10 as is, or rows relative to their brightness.
 WEIGHTINGS: tuple[str, ...] = ("none", "relative")
 #: How the next group is chosen: the coefficients' posterior, or a committee of other bases (docs/adaptive-capture.md).
@@ -455,7 +458,7 @@ class AdaptiveState:
         cv = np.sqrt((measured + self._cv_row_mse(m) * unmeasured.sum() * len(self.sub)) / ss)
         out = {"posterior": float(post), "cv": float(cv), "s": float(np.sqrt(s2))}
         if len(self.probes) >= PROBE_MIN:
-            out["probes"] = float(np.sqrt((measured + self.probe_estimates(m)["greg"] * len(self.sub)) / ss))
+            out["probes"] = float(np.sqrt((measured + self.probe_estimates(m)["stratified"] * len(self.sub)) / ss))
         return out
 
     def _cv_row_mse(self, m: dict) -> float:
@@ -509,8 +512,11 @@ class AdaptiveState:
         (blind to the probes, so known alike for the probes and the unmeasured groups ``U``) as the auxiliary:
 
         ``mean``: :math:`n_U \\bar e`; ``ratio``: :math:`\\sum_U d \\sum_P e / \\sum_P d`; ``greg`` (the
-        generalised regression estimator, the loop's): :math:`n_U (\\bar e_P + b (\\bar d_U - \\bar d_P))`, ``b``
-        the probes' least-squares slope of ``e`` on ``d``, at least 0 (docs/adaptive-capture.md, "Probe groups").
+        generalised regression estimator): :math:`n_U (\\bar e_P + b (\\bar d_U - \\bar d_P))`, ``b`` the probes'
+        least-squares slope of ``e`` on ``d``; ``stratified`` (the loop's): the same regression with an intercept
+        per brightness stratum :math:`h` (:meth:`probe_strata`, the strata the probes are drawn from),
+        :math:`\\sum_U (a_h + b d)`, once every stratum with unmeasured groups holds two probes (``greg`` before).
+        Each is at least 0 (docs/adaptive-capture.md, "Probe groups").
         """
         m = model or self._model()
         e, d = self.probe_errors(m), self.disagreement(m)
@@ -518,11 +524,28 @@ class AdaptiveState:
         unmeasured[self.probes] = False
         n_u = int(unmeasured.sum())
         if n_u == 0 or len(e) < 2:
-            return {"mean": n_u * float(np.mean(e)) if len(e) else 0.0, "ratio": 0.0, "greg": 0.0}
+            return {"mean": n_u * float(np.mean(e)) if len(e) else 0.0, "ratio": 0.0, "greg": 0.0, "stratified": 0.0}
         d_p, d_u = d[self.probes], d[unmeasured]
         slope = float(np.cov(d_p, e)[0, 1]) / max(float(np.var(d_p, ddof=1)), 1e-300)
-        return {"mean": n_u * float(e.mean()), "ratio": float(d_u.sum() * e.sum()) / max(float(d_p.sum()), 1e-300),
-                "greg": max(n_u * (float(e.mean()) + slope * float(d_u.mean() - d_p.mean())), 0.0)}
+        out = {"mean": n_u * float(e.mean()), "ratio": float(d_u.sum() * e.sum()) / max(float(d_p.sum()), 1e-300),
+               "greg": max(n_u * (float(e.mean()) + slope * float(d_u.mean() - d_p.mean())), 0.0)}
+        h, h_p = self.probe_strata, self.probe_strata[self.probes]
+        strata = np.unique(h[unmeasured])
+        if min(int(np.sum(h_p == j)) for j in strata) < 2:
+            return {**out, "stratified": out["greg"]}
+        a_p = np.column_stack([h_p[:, None] == strata[None, :], d_p])      # an intercept per stratum, a slope on d
+        coef = np.linalg.lstsq(a_p.astype(np.float64), e, rcond=None)[0]
+        a_u = np.column_stack([h[unmeasured][:, None] == strata[None, :], d_u]).astype(np.float64)
+        return {**out, "stratified": max(float(np.sum(a_u @ coef)), 0.0)}
+
+    @functools.cached_property
+    def probe_strata(self) -> np.ndarray:
+        """Each group's brightness stratum ``(n_groups,)``, 0 to :data:`PROBE_STRATA` - 1: the quantiles of the class
+        basis' first vector's magnitude (:math:`|U_{i1}| \\sigma_1`, a typical texel's brightness), averaged over
+        the group's rows. Grazing and dark groups, whose errors are the largest, are one stratum, so the probes
+        cover them in proportion (:func:`probe_group`)."""
+        b = np.abs(self.X[:, 0])[group_rows(np.arange(self.n_groups), self.geometry)].mean(axis=1)
+        return np.digitize(b, np.quantile(b, np.linspace(0, 1, PROBE_STRATA + 1)[1:-1]))
 
     # ------------------------------------------------------------------ selection
 
@@ -861,11 +884,17 @@ def _check_rules(predictor: str, select: str, committee: Sequence[tuple[np.ndarr
                          "disagreement)")
 
 
-def probe_group(groups: Sequence[int], n_groups: int, seed: int) -> int:
-    """A probe: a group drawn uniformly from those not in ``groups``, seeded by ``(seed, len(groups))`` so that a
-    replayed run draws the same."""
-    cand = np.setdiff1d(np.arange(n_groups), np.asarray(groups, dtype=np.int64))
-    return int(np.random.default_rng([seed, len(groups)]).choice(cand))
+def probe_group(groups: Sequence[int], strata: np.ndarray, n_probes: int, seed: int) -> int:
+    """A probe: a group drawn uniformly from those not in ``groups`` in stratum ``n_probes mod`` the strata's
+    count (``strata``: each group's, :attr:`AdaptiveState.probe_strata`; the next stratum where that one is
+    measured out), seeded by ``(seed, len(groups))`` so that a replayed run draws the same."""
+    cand = np.setdiff1d(np.arange(len(strata)), np.asarray(groups, dtype=np.int64))
+    n_strata = int(strata.max()) + 1
+    for j in range(n_strata):
+        in_stratum = cand[strata[cand] == (n_probes + j) % n_strata]
+        if len(in_stratum):
+            return int(np.random.default_rng([seed, len(groups)]).choice(in_stratum))
+    raise ValueError("every group is measured: no probe left to draw")
 
 
 def _next_group(state: AdaptiveState, replay: Sequence[int], first: Sequence[int], probe: bool, seed: int,
@@ -876,7 +905,7 @@ def _next_group(state: AdaptiveState, replay: Sequence[int], first: Sequence[int
         return int(replay[n])
     if n < len(first):
         return int(first[n])
-    return probe_group(state.groups, state.n_groups, seed) if probe else choose()
+    return probe_group(state.groups, state.probe_strata, len(state.probes), seed) if probe else choose()
 
 
 def basis_floor(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, truth: np.ndarray,
@@ -934,7 +963,7 @@ def run_adaptive(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, noise: Se
     predictor : {'posterior', 'cv', 'probes'}
         Which prediction the target is tested on (the first two are always recorded). ``probes`` (needs
         ``select='committee'``) makes every :data:`PROBE_EVERY`-th step from the start design's end a probe, a
-        group drawn uniformly from the unmeasured ones (:func:`probe_group`), which the committee's choice does
+        group drawn uniformly from the unmeasured ones of a brightness stratum in turn (:func:`probe_group`), which the committee's choice does
         not see, and predicts the unmeasured rows' error from the probes' (:meth:`AdaptiveState.probe_estimates`;
         the posterior's prediction until :data:`PROBE_MIN` probes, when the loop does not stop at a target:
         :func:`first_stop`).

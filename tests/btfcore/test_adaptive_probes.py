@@ -47,8 +47,11 @@ def test_probe_steps_follow_the_schedule_and_replay():
     assert full.settings["predictor"] == "probes" and full.settings["probe_every"] == PROBE_EVERY
     probes = [s for s in full.steps if s.probe]
     assert [s.step for s in probes] == list(range(n0, 24, PROBE_EVERY))
-    for s in probes:                                                  # drawn from the groups not measured before
-        assert s.group == probe_group(full.groups[:s.step].tolist(), GEOMETRY.n_turn * GEOMETRY.n_leds, 3)
+    strata = AdaptiveState(U, sigma, GEOMETRY, NOISE, n_tx=1).probe_strata
+    assert sorted(np.bincount(strata)) == [8, 8, 8, 8]                # quartiles of the 32 groups' brightness
+    for j, s in enumerate(probes):                   # drawn from the groups not measured before, strata in turn
+        assert s.group == probe_group(full.groups[:s.step].tolist(), strata, j, 3)
+        assert strata[s.group] == j % 4 and s.group not in full.groups[:s.step]
     n_probes = np.cumsum([s.probe for s in full.steps])
     for s, n in zip(full.steps, n_probes):                            # the posterior's until PROBE_MIN probes
         assert (s.predicted_probes == s.predicted) == (n < PROBE_MIN)
