@@ -2,13 +2,13 @@
 
 Bar 1 asks the adaptive loop to reach the fixed optimised sampling's n_s = 400 error in half its shots. This
 computes, for every held-out material of the structured classes, the **floor** of its leave-one-out class basis
-(:func:`btfcore.acquisition.adaptive.basis_floor`, which the evaluation's records hold since ``ADAPTIVE_VERSION`` 8): the error
-of the loop's solve (relative row weights, the Tikhonov term of paper 4 eq. 10, every row from the basis) when
-*every* row is measured without noise. No
-sampling of rows reaches under it without the measured rows' own values (the loop and the fixed samplings fuse
-them, ``--rows fused``), and each shot measures ``n_cam`` of the ``n_lv`` rows. It prints the floor beside the
-fixed n_s = 400 error and the loop's shots to that error, read from the evaluation's report.json. A few seconds a
-material.
+(:func:`btfcore.acquisition.adaptive.basis_floor`, which the evaluation's records hold since
+``ADAPTIVE_VERSION`` 8): the error of the loop's solve (relative row weights, the Tikhonov term of paper 4
+eq. 10, every row from the basis) when *every* row is measured without noise. No sampling of rows reaches under
+it without the measured rows' own values (the loop and the fixed samplings fuse them, ``--rows fused``), and each
+shot measures ``n_cam`` of the ``n_lv`` rows. It prints the floor beside the fixed n_s = 400 error and the loop's
+shots to that error, read from the evaluation's report.json (``--seed``, ``--materials-per-class`` and
+``--turntable`` as the evaluation's). About a second a material.
 
     PYTHONPATH=benchmarks .venv/bin/python benchmarks/study_adaptive_floor.py --db acq-db --eval acq [--seed 0]
 """

@@ -5,7 +5,8 @@ unmeasured (docs/adaptive-capture.md, "A second draw of materials"). This replay
 (``study_adaptive_predictor``'s replay: the same bases, committee, simulator seeds and budget) with the loop's
 ``predictor='probes'`` (:func:`btfcore.acquisition.adaptive.run_adaptive`): every ``--every``-th step after the
 start design is a **probe**, a group drawn uniformly from the unmeasured ones of a brightness stratum in turn,
-which the committee's choice does not see, so that a probe's leave-one-group-out error is distributed as an unmeasured group's.
+which the committee's choice does not see, so that a probe's leave-one-group-out error is distributed as an
+unmeasured group's of its stratum.
 
 At every step it records the loop's posterior prediction (``predicted``) and the predictions of the four
 estimates of :meth:`~btfcore.acquisition.adaptive.AdaptiveState.probe_estimates` (``mean``, ``ratio``, ``greg`` and

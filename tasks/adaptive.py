@@ -46,7 +46,7 @@ __all__ = ["ADAPTIVE_VERSION", "AwaitingShot", "committee_bases", "adaptive_plan
            "step_measurement", "write_adaptive_report"]
 
 #: Raised when the adaptive records' meaning changes (their reuse key includes it). 8: records hold the class
-#: basis' floor (:func:`~btfcore.acquisition.adaptive.basis_floor`).
+#: basis' floor (:func:`~btfcore.acquisition.adaptive.basis_floor`); probes are drawn by brightness stratum.
 ADAPTIVE_VERSION = 8
 
 #: A fixed sampling's error at most this many times the class basis' floor counts as at the floor.
@@ -573,9 +573,9 @@ _POSTERIOR_NOTE = ("These shares are of this run's materials: the posterior's se
 _PROBES_NOTE = ("The loop shot a probe, a group drawn at random from one brightness quartile of the groups in "
                 "turn, every third step after the start design, and predicted the error of the groups it left from "
                 "the probes' (a regression on the committee's disagreement with an intercept per quartile, from the "
-                "fifth probe on; a target is not tested before): its estimator was chosen on the evaluation's "
-                "default materials and four other sets, its other settings were not tuned. The probes cost shots to a given error "
-                "(docs/adaptive-capture.md, \"Probe groups in the loop\").")
+                "fifth probe on; a target is not tested before): its estimator was chosen among five on replays of "
+                "three draws of materials (seeds 0-2), its other settings were not tuned. The probes cost shots to "
+                "a given error (docs/adaptive-capture.md, \"Probes by brightness stratum\").")
 
 
 def adaptive_sections(section: dict[str, Any] | None) -> list[dict[str, Any]]:

@@ -70,8 +70,8 @@ from btfcore.acquisition.strategies import Geometry, row_groups
 from btfcore.model.colour import LOG_YUV_EPS, REC709_LUMA
 
 __all__ = ["MEASURED_ROWS", "PREDICTION_KEYS", "PREDICTORS", "SELECTIONS", "WEIGHTINGS", "AdaptiveResult",
-           "AdaptiveState", "Step", "basis_floor", "expected_log_error", "fused_error", "group_pairs", "group_rows", "fuse_measured",
-           "log_y_error", "first_stop", "probe_group", "run_adaptive", "shot_costs", "start_groups"]
+           "AdaptiveState", "Step", "basis_floor", "expected_log_error", "fused_error", "group_pairs", "group_rows",
+           "fuse_measured", "log_y_error", "first_stop", "probe_group", "run_adaptive", "shot_costs", "start_groups"]
 
 #: The error predictors: each step records the first two, and ``probes`` where the loop shoots probe groups; the one
 #: chosen stops the loop (docs/adaptive-capture.md, "The predicted error").
@@ -524,7 +524,8 @@ class AdaptiveState:
         unmeasured[self.probes] = False
         n_u = int(unmeasured.sum())
         if n_u == 0 or len(e) < 2:
-            return {"mean": n_u * float(np.mean(e)) if len(e) else 0.0, "ratio": 0.0, "greg": 0.0, "stratified": 0.0}
+            mean = n_u * float(np.mean(e)) if len(e) else 0.0
+            return {"mean": mean, "ratio": 0.0, "greg": 0.0, "stratified": 0.0}
         d_p, d_u = d[self.probes], d[unmeasured]
         slope = float(np.cov(d_p, e)[0, 1]) / max(float(np.var(d_p, ddof=1)), 1e-300)
         out = {"mean": n_u * float(e.mean()), "ratio": float(d_u.sum() * e.sum()) / max(float(d_p.sum()), 1e-300),
@@ -925,7 +926,8 @@ def basis_floor(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, truth: np.
     state._weights(beta[state.rows_of(0)])                            # the reference: the first group's
     sw = np.sqrt(state._weights(beta))[:, None]
     a = state.X * sw
-    D = np.linalg.solve(a.T @ a + state.lam ** 2 * np.eye(state.k), a.T @ (sw * truth.reshape(state.n_lv, -1)))   # eq. (10)
+    rhs = a.T @ (sw * truth.reshape(state.n_lv, -1))
+    D = np.linalg.solve(a.T @ a + state.lam ** 2 * np.eye(state.k), rhs)        # eq. (10) of paper 4
     return log_y_error((state.X @ D).reshape(truth.shape) @ REC709_LUMA, truth @ REC709_LUMA)
 
 
@@ -963,10 +965,10 @@ def run_adaptive(U: np.ndarray, sigma: np.ndarray, geometry: Geometry, noise: Se
     predictor : {'posterior', 'cv', 'probes'}
         Which prediction the target is tested on (the first two are always recorded). ``probes`` (needs
         ``select='committee'``) makes every :data:`PROBE_EVERY`-th step from the start design's end a probe, a
-        group drawn uniformly from the unmeasured ones of a brightness stratum in turn (:func:`probe_group`), which the committee's choice does
-        not see, and predicts the unmeasured rows' error from the probes' (:meth:`AdaptiveState.probe_estimates`;
-        the posterior's prediction until :data:`PROBE_MIN` probes, when the loop does not stop at a target:
-        :func:`first_stop`).
+        group drawn uniformly from the unmeasured ones of a brightness stratum in turn (:func:`probe_group`), which
+        the committee's choice does not see, and predicts the unmeasured rows' error from the probes'
+        (:meth:`AdaptiveState.probe_estimates`; the posterior's prediction until :data:`PROBE_MIN` probes, when the
+        loop does not stop at a target: :func:`first_stop`).
     seed : int
         Seed of the predictor's texel subset and of the probe draws.
     score : callable, optional

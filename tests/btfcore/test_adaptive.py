@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from btfcore.acquisition.adaptive import (LUMA_NOISE_SHARE, MISFIT_MEDIAN_CAP, MISFIT_WINDOW, STOP_PATIENCE, AdaptiveState, basis_floor, expected_log_error, fuse_measured,
+from btfcore.acquisition.adaptive import (LUMA_NOISE_SHARE, MISFIT_MEDIAN_CAP, MISFIT_WINDOW, STOP_PATIENCE,
+                                         AdaptiveState, basis_floor, expected_log_error, fuse_measured,
                                          fused_error, group_rows, log_y_error, luminance_noise, run_adaptive,
                                          shot_costs, start_groups)
 from btfcore.model.colour import LOG_YUV_EPS, REC709_LUMA
