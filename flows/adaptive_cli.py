@@ -27,12 +27,13 @@ It is a guide, not a guarantee: on simulated held-out materials it was within
 of materials, up to 2.9x over it, and a loop stopped at a target ended at up
 to 2.3x the target (docs/adaptive-capture.md, "A second draw of materials").
 With --predictor probes every third shot after the start design is a group
-drawn at random, not chosen, and the error of the groups not measured is
-estimated from theirs (a target is tested from the fifth such shot on): within
-25 % at the budget on 69 of 72 simulated held-out materials (three draws of
-materials, two scales; the posterior: 51), at 9-39 % more shots to the
-fixed sampling's error in leather and stone (docs/adaptive-capture.md, "Probe
-groups").
+drawn at random from one brightness quartile of the groups in turn, not
+chosen, and the error of the groups not measured is estimated from theirs (a
+target is tested from the fifth such shot on): within 25 % at the budget on
+71 of 72 simulated held-out materials (three draws of materials, two scales;
+the posterior: 51), at 16-36 % more shots to the fixed sampling's error in
+leather and stone at the default scale (docs/adaptive-capture.md, "Probes by
+brightness stratum").
 The next group is, by default (--select committee), the one whose rows hold the
 most error as a committee of the model database's other per-material ALS bases,
 fitted to the same measurements, sees it (where they disagree with the class

@@ -488,8 +488,8 @@ class AdaptiveState:
         """Each probe group's squared log-Y error ``(n_probes,)`` predicted from the other groups
         (:meth:`group_held_out`), the texel mean summed over its rows: lit entries less their sensor noise's
         share (:math:`v / y^2`), entries at or below the read noise their fit's log distance to eps, as
-        :func:`fused_error` counts a fused entry. A probe is drawn uniformly from the unmeasured groups, so this
-        is a sample of the error an unmeasured group holds."""
+        :func:`fused_error` counts a fused entry. A probe is drawn uniformly from the unmeasured groups of its
+        stratum (:func:`probe_group`), so this is a sample of the error an unmeasured group of that stratum holds."""
         m = model or self._model()
         eps, cap, n_cam = LOG_YUV_EPS, np.log(1 / LOG_YUV_EPS) ** 2, self.geometry.n_cam
         ys = self.y @ REC709_LUMA
