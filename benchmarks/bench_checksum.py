@@ -15,10 +15,12 @@ run with the contenders interleaved, the same work with and without the checksum
   variant the write, one streaming pass of ``tasks.model.blocks`` (what the basis fits read) and a
   randomized truncated SVD of rank ``--k`` over that stream (``btfcore.model.truncated_svd``, BLAS on one
   thread), each as CPU seconds of this process and wall seconds; costs from the fastest runs;
-* ``io``: the ingest's own Zarr traffic alone, on one worker (its environment: malloc settings,
-  one thread), nothing else computed: every view's raw read as
-  ``ingest_view`` reads it (``get_basic_selection`` into a reused buffer) from each capture, and every
-  view's textures written to a BTF-layout array as ``ingest_view`` writes them; fastest of
+* ``io``: the ingest's own store traffic alone, on one worker (its environment: malloc settings,
+  one thread), nothing else computed: every view's raw
+  read as ``ingest_view`` reads it (``tasks.integrity.read_chunk_windows`` into a reused buffer: the
+  chunk files read without Zarr, with or without their CRC32C) from each capture, and every view's
+  textures written to a BTF-layout array as ``ingest_view`` writes them
+  (``tasks.stores.write_chunk_aligned``: the chunk files written past the page cache); fastest of
   ``--repeats`` interleaved runs (other work on the machine only adds time), and the difference set
   against the ingest's worker CPU seconds;
 * the codec's own rates on one raw chunk (645 KB): ``google_crc32c.value`` and the ``np.append`` copy
@@ -93,15 +95,16 @@ def codec_rates() -> dict[str, float]:
 def bench_io(inputs: dict[bool, Path], repeats: int, scratch: Path) -> dict:
     """Fastest seconds of the ingest's raw reads and texture writes with and without checksums."""
     import zarr
-    from zarr.core.buffer import default_buffer_prototype
 
     from tasks.ingest import band_rows
+    from tasks.integrity import read_chunk_windows
+    from tasks.stores import write_chunk_aligned
 
     raw = {k: zarr.open_group(str(p), mode="r")["raw"] for k, p in inputs.items()}
     n_turn, n_cam, n_illum, n_exp, rows, cols = raw[True].shape
     views = [(t, c) for t in range(n_turn) for c in range(n_cam)]
     buf = np.empty((n_illum, n_exp, rows, cols), np.uint16)
-    out = default_buffer_prototype().nd_buffer.from_numpy_array(buf)
+    whole = (slice(None),) * 3
     h = w = 128
     textures = np.random.default_rng(0).random((n_illum, h, w, 3), dtype=np.float32)
     read: dict[bool, list[float]] = {True: [], False: []}
@@ -110,7 +113,7 @@ def bench_io(inputs: dict[bool, Path], repeats: int, scratch: Path) -> dict:
         for enabled in ((True, False) if rep % 2 == 0 else (False, True)):
             start = time.perf_counter()
             for t, c in views:
-                raw[enabled].get_basic_selection((t, c), out=out)
+                read_chunk_windows(raw[enabled], (t, c), whole, buf)
             read[enabled].append(time.perf_counter() - start)
             set_checksums(enabled)
             from tasks.integrity import create_array
@@ -119,7 +122,7 @@ def bench_io(inputs: dict[bool, Path], repeats: int, scratch: Path) -> dict:
                                chunks=(n_illum, band_rows(n_illum, h, w), w, 3), fill_value=0.0, compressors=None)
             start = time.perf_counter()
             for k in range(len(views)):
-                btf[k * n_illum:(k + 1) * n_illum] = textures
+                write_chunk_aligned(btf, slice(k * n_illum, (k + 1) * n_illum), textures)
             write[enabled].append(time.perf_counter() - start)
     set_checksums(True)
     best = {name: {k: min(v) for k, v in d.items()} for name, d in (("read", read), ("write", write))}

@@ -389,9 +389,9 @@ def chunk_files_exist(array: zarr.Array, chunks: Sequence[tuple[int, ...]]) -> l
 def read_chunk_rows(array: zarr.Array, start: int, stop: int, out: np.ndarray) -> None:
     """``out[...] = array[:, start:stop]`` for an array chunked along its first two axes only.
 
-    Where the rows ``start:stop`` lie in one chunk row, the array is uncompressed with a CRC32C checksum
-    on a local store (what :func:`create_array` makes) and every chunk file has its exact size, each
-    chunk file is read and its checksum verified without Zarr: straight into its part of ``out`` (C
+    Where the rows ``start:stop`` lie in one chunk row, the array is uncompressed on a local store
+    (:func:`_plain_codec`: what :func:`create_array` makes) and every chunk file has its exact size, each
+    chunk file is read, and its checksum verified, without Zarr: straight into its part of ``out`` (C
     contiguous) where the rows are the whole chunk's, else into a scratch buffer whose rows are copied
     out (a band split into sub-bands by a fit's memory budget; the edge chunk, stored padded). One copy
     of a whole chunk where Zarr makes two and allocates a new buffer per chunk: 0.18-0.22 s against
@@ -400,7 +400,7 @@ def read_chunk_rows(array: zarr.Array, start: int, stop: int, out: np.ndarray) -
     values or raises :class:`CorruptChunkError` naming the chunk, as every other read does.
     """
     shape, chunks = array.shape, array.chunks
-    local = _plain_chunks(array, out.dtype)
+    local, crc = _plain_chunks(array, out.dtype), has_checksums(array)
     n_groups = shape[0] // chunks[0]
     fast = (local is not None and out.flags.c_contiguous and out.shape == (shape[0], stop - start, *shape[2:])
             and 0 <= start < stop <= shape[1] and start // chunks[1] == (stop - 1) // chunks[1]
@@ -415,7 +415,7 @@ def read_chunk_rows(array: zarr.Array, start: int, stop: int, out: np.ndarray) -
         for i in range(n_groups):
             key = array.metadata.encode_chunk_key((i, row, *rest))
             part = flat[i * size:(i + 1) * size] if whole else scratch
-            if not _read_chunk_file(os.path.join(local, *key.split("/")), part):
+            if not _read_chunk_file(os.path.join(local, *key.split("/")), part, crc):
                 break
             if not whole:
                 chunk = part.view(out.dtype).reshape(chunks)
@@ -427,11 +427,11 @@ def read_chunk_rows(array: zarr.Array, start: int, stop: int, out: np.ndarray) -
 
 
 def _plain_codec(array: zarr.Array, dtype: np.dtype) -> str | None:
-    """The local folder of ``array`` where its chunk files are plain: uncompressed with a CRC32C checksum
-    (what :func:`create_array` makes), little-endian, on a local store, for values of ``dtype`` (its native
-    dtype); None otherwise."""
-    local = _local_root(array)
-    ok = (local is not None and not array.filters and len(array.compressors) == 1 and has_checksums(array)
+    """The local folder of ``array`` where its chunk files are plain: uncompressed, with a CRC32C checksum
+    (what :func:`create_array` makes) or without any codec (a store written before checksums, issue 13),
+    little-endian, on a local store, for values of ``dtype`` (its native dtype); None otherwise."""
+    local, codecs = _local_root(array), len(array.compressors)
+    ok = (local is not None and not array.filters and (codecs == 0 or codecs == 1 and has_checksums(array))
           and getattr(array.serializer, "endian", None) is not None and array.serializer.endian.value == "little"
           and dtype == _native_dtype(array.dtype) and dtype.byteorder in ("=", "<", "|"))
     return local if ok else None
@@ -445,19 +445,19 @@ def _plain_chunks(array: zarr.Array, dtype: np.dtype) -> str | None:
     return local if ok else None
 
 
-def _read_chunk_file(path: str, part: np.ndarray) -> bool:
-    """Read a plain chunk file into ``part`` (contiguous ``uint8``): whether its size and CRC32C match."""
+def _read_chunk_file(path: str, part: np.ndarray, crc: bool = True) -> bool:
+    """Read a plain chunk file into ``part`` (contiguous ``uint8``): whether its size and CRC32C (``crc``) match."""
     import google_crc32c
 
     size = part.nbytes
     try:
         with open(path, "rb", buffering=0) as f:
-            if os.fstat(f.fileno()).st_size != size + 4 or f.readinto(memoryview(part)) != size:
+            if os.fstat(f.fileno()).st_size != size + 4 * crc or f.readinto(memoryview(part)) != size:
                 return False
-            stored = int.from_bytes(f.read(4), "little")
+            stored = int.from_bytes(f.read(4), "little") if crc else None
     except OSError:
         return False
-    return google_crc32c.value(part) == stored
+    return not crc or google_crc32c.value(part) == stored
 
 
 def read_chunk_windows(array: zarr.Array, lead: tuple[int, ...], window: tuple[slice, ...],
@@ -468,14 +468,14 @@ def read_chunk_windows(array: zarr.Array, lead: tuple[int, ...], window: tuple[s
     shape, chunks, n = array.shape, array.chunks, len(lead) + 1
     sizes = tuple(len(range(*w.indices(d))) for w, d in zip(window, shape[n:]))
     out = np.empty((shape[n - 1], *sizes), _native_dtype(array.dtype)) if out is None else out
-    local = _plain_codec(array, out.dtype)
+    local, crc = _plain_codec(array, out.dtype), has_checksums(array)
     if (local is not None and tuple(chunks[:n]) == (1,) * n and tuple(chunks[n:]) == tuple(shape[n:])
             and len(window) == len(shape) - n and out.shape == (shape[n - 1], *sizes)):
         scratch = np.empty(int(np.prod(chunks)) * out.dtype.itemsize, np.uint8)
         chunk = scratch.view(out.dtype).reshape(chunks[n:])
         for i in range(shape[n - 1]):
             key = array.metadata.encode_chunk_key((*lead, i) + (0,) * (len(shape) - n))
-            if not _read_chunk_file(os.path.join(local, *key.split("/")), scratch):
+            if not _read_chunk_file(os.path.join(local, *key.split("/")), scratch, crc):
                 break
             out[i] = chunk[window]
         else:
@@ -490,22 +490,22 @@ def write_chunks_directly(array: zarr.Array, block: tuple[slice, ...], data: np.
     :func:`tasks.stores.common.write_chunk_aligned`, the one caller), as chunk files past the page cache;
     False, with nothing written, where Zarr has to write it.
 
-    Where Zarr is not needed (:func:`_plain_chunks`, the block spanning the axes after the first two), each
-    chunk's bytes and their CRC32C go to a temporary file renamed into place, as Zarr's local store writes
-    them: the same bytes, an edge chunk padded with the fill value, and a chunk that holds only the fill
-    value not stored (an old file of it removed), as Zarr does without ``write_empty_chunks``. A chunk's
-    values are written from ``data`` itself where they are contiguous there and start at a 512-byte aligned
-    address (a :func:`tasks.buffers.reused_buffer` is page-aligned), else from a page-aligned per-thread
-    copy. Their whole 512-byte blocks go with ``O_DIRECT``: on the 2-core VM a buffered write of 522 MB into
-    fresh page-cache pages cost 1.26 s of kernel CPU, a direct one 0.015 s at the disk's rate
-    (docs/benchmarks.md, 2026-12-05). A file system without ``O_DIRECT`` gets the same files buffered.
+    Where Zarr is not needed (:func:`_plain_chunks`, the block spanning the axes after the first two), each chunk's
+    bytes and their CRC32C (where the array has the codec) go to a temporary file renamed into place, as Zarr's
+    local store writes them: the same bytes, an edge chunk padded with the fill value, and a chunk that holds only
+    the fill value not stored (an old file of it removed), as Zarr does without ``write_empty_chunks``. A chunk's
+    values are written from ``data`` itself where they are contiguous there and start at a 512-byte aligned address
+    (a :func:`tasks.buffers.reused_buffer` is page-aligned), else from a page-aligned per-thread copy. Their whole
+    512-byte blocks go with ``O_DIRECT``: on the 2-core VM a buffered write of 522 MB into fresh page-cache pages
+    cost 1.26 s of kernel CPU, a direct one 0.015 s at the disk's rate (docs/benchmarks.md, 2026-12-05). A file
+    system without ``O_DIRECT`` gets the same files buffered.
     """
     import google_crc32c
 
     from tasks.buffers import reused_buffer
 
     shape, chunks, fill = array.shape, array.chunks, array.fill_value
-    local = _plain_chunks(array, data.dtype)
+    local, crc = _plain_chunks(array, data.dtype), has_checksums(array)
     if (local is None or data.shape != tuple(s.stop - s.start for s in block)
             or any(s.stop - s.start != n for s, n in zip(block[2:], shape[2:]))
             or array.async_array.config.write_empty_chunks or fill is None or not np.isfinite(fill)):
@@ -528,7 +528,7 @@ def write_chunks_directly(array: zarr.Array, block: tuple[slice, ...], data: np.
                 staged[:values.shape[0], :values.shape[1]] = values
                 values = staged
             part = values.reshape(-1).view(np.uint8)
-            _write_chunk_file(path, part, google_crc32c.value(part).to_bytes(4, "little"))
+            _write_chunk_file(path, part, google_crc32c.value(part).to_bytes(4, "little") if crc else b"")
     return True
 
 

@@ -233,11 +233,21 @@ def test_validate_opens_other_store_kinds(tmp_path, capsys):
     assert code == EXIT_BAD_INPUT and "nothing at" in out, out
 
 
-def _banded(path: Path) -> zarr.Array:
+def _created(group: zarr.Group, name: str, checksums: bool, **kwargs) -> zarr.Array:
+    """``create_array``, or as a store written before checksums (issue 13) when not ``checksums``."""
+    with pytest.MonkeyPatch.context() as patch:
+        if not checksums:
+            patch.setattr(integrity, "checksummed", lambda compressors=None: [])
+        array = create_array(group, name, **kwargs)
+    assert has_checksums(array) == checksums
+    return array
+
+
+def _banded(path: Path, checksums: bool = True) -> zarr.Array:
     """A btf-like array: 3 x 4 light/view chunks of 4 texture rows (the last of 2, padded), whole rows."""
     data = np.random.default_rng(8).uniform(0, 1, (12, 10, 5, 3)).astype(np.float32)
     group = zarr.open_group(str(path), mode="w", zarr_format=3)
-    array = create_array(group, "btf", shape=data.shape, chunks=(4, 4, 5, 3), dtype="float32", fill_value=0.0)
+    array = _created(group, "btf", checksums, shape=data.shape, chunks=(4, 4, 5, 3), dtype="float32", fill_value=0.0)
     array[...] = data
     return array
 
@@ -251,10 +261,12 @@ def _reads(monkeypatch) -> list:
     return calls
 
 
-def test_rows_within_one_chunk_row_are_read_without_zarr_and_across_chunk_rows_through_it(tmp_path, monkeypatch):
+@pytest.mark.parametrize("checksums", [True, False])
+def test_rows_within_one_chunk_row_are_read_without_zarr_and_across_chunk_rows_through_it(tmp_path, monkeypatch,
+                                                                                          checksums):
     """Whole chunks straight into the band, sub-bands and the padded edge chunk through a scratch buffer;
-    rows that cross a chunk row through Zarr."""
-    array = _banded(tmp_path / "b.zarr")
+    rows that cross a chunk row through Zarr. The same for a store without checksums."""
+    array = _banded(tmp_path / "b.zarr", checksums)
     calls = _reads(monkeypatch)
     for start, stop, straight in ((0, 4, True), (4, 8, True), (8, 10, True), (0, 2, True), (5, 6, True),
                                   (9, 10, True), (1, 5, False), (3, 9, False)):
@@ -291,18 +303,19 @@ def _direct_io_works(folder: Path) -> bool:
         os.remove(folder / "probe")
 
 
-def test_whole_chunks_are_written_as_zarr_writes_them(tmp_path, monkeypatch):
-    """Blocks of whole chunks give the chunk files Zarr writes, byte for byte: bands of one chunk row from a
-    page-aligned buffer, the padded edge band, a view's rows across every chunk row (copied per chunk), light/view
-    parts of a band; a chunk of fill values only is not stored and its old file is removed, as Zarr does. The
-    aligned 512-byte blocks go past the page cache where the file system takes O_DIRECT. A block that is not
-    whole chunks is refused, naming it."""
+@pytest.mark.parametrize("checksums", [True, False])
+def test_whole_chunks_are_written_as_zarr_writes_them(tmp_path, monkeypatch, checksums):
+    """Blocks of whole chunks give the chunk files Zarr writes, byte for byte (with or without checksums): bands of
+    one chunk row from a page-aligned buffer, the padded edge band, a view's rows across every chunk row (copied per
+    chunk), light/view parts of a band; a chunk of fill values only is not stored and its old file is removed, as
+    Zarr does. The aligned 512-byte blocks go past the page cache where the file system takes O_DIRECT. A block that
+    is not whole chunks is refused, naming it."""
     import fcntl
     import os
 
     from tasks.buffers import prefaulted
 
-    by_zarr, ours = _banded(tmp_path / "zarr.zarr"), _banded(tmp_path / "ours.zarr")
+    by_zarr, ours = _banded(tmp_path / "zarr.zarr", checksums), _banded(tmp_path / "ours.zarr", checksums)
     data = np.random.default_rng(9).uniform(1, 2, (12, 10, 5, 3)).astype(np.float32)
     data[4:8, 0:4] = 0.0                                            # chunk (1, 0): fill values only
     direct: list[bool] = []
@@ -378,11 +391,12 @@ def test_a_damaged_or_missing_chunk_in_a_whole_band_is_left_to_zarr(tmp_path, ch
     assert not sub[8:].any() and sub[:8].all()
 
 
-def _raw_like(path: Path) -> zarr.Array:
+def _raw_like(path: Path, checksums: bool = True) -> zarr.Array:
     """A capture-raw-like array: one uint16 chunk of (exposures, rows, cols) per (view, illumination)."""
     data = np.random.default_rng(9).integers(0, 4096, (1, 2, 5, 3, 8, 9)).astype(np.uint16)
     group = zarr.open_group(str(path), mode="w", zarr_format=3)
-    array = create_array(group, "raw", shape=data.shape, chunks=(1, 1, 1, 3, 8, 9), dtype="uint16", fill_value=0)
+    array = _created(group, "raw", checksums, shape=data.shape, chunks=(1, 1, 1, 3, 8, 9), dtype="uint16",
+                     fill_value=0)
     array[...] = data
     return array
 
@@ -405,3 +419,20 @@ def test_chunk_windows_are_read_without_zarr_and_damage_is_left_to_it(tmp_path, 
     integrity.read_chunk_windows(array, (0, 1), window, out)
     assert calls and not out[3].any()
     np.testing.assert_array_equal(out[[0, 1, 2, 4]], array[(0, 1, [0, 1, 2, 4], *window)])
+
+
+def test_chunk_windows_of_a_store_without_checksums_are_read_without_zarr(tmp_path, monkeypatch):
+    """A store written before checksums (issue 13) is read straight from its chunk files too; a cut file is
+    left to Zarr, which names it."""
+    array = _raw_like(tmp_path / "c.zarr", checksums=False)
+    calls = _reads(monkeypatch)
+    window = (slice(None), slice(1, 8), slice(0, 9))
+    out = np.zeros((5, 3, 7, 9), np.uint16)
+    integrity.read_chunk_windows(array, (0, 1), window, out)
+    np.testing.assert_array_equal(out, array[(0, 1, slice(None), *window)])
+    assert not calls
+    cut = tmp_path / "c.zarr" / "raw" / "c" / "0" / "1" / "2" / "0" / "0" / "0"
+    cut.write_bytes(cut.read_bytes()[:-2])
+    with pytest.raises(CorruptChunkError, match=r"array raw, chunk \(0, 1, 2, 0, 0, 0\)"):
+        integrity.read_chunk_windows(array, (0, 1), window, out)
+    assert calls
