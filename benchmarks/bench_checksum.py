@@ -16,11 +16,11 @@ run with the contenders interleaved, the same work with and without the checksum
   randomized truncated SVD of rank ``--k`` over that stream (``btfcore.model.truncated_svd``, BLAS on one
   thread), each as CPU seconds of this process and wall seconds; costs from the fastest runs;
 * ``io``: the ingest's own store traffic alone, on one worker (its environment: malloc settings,
-  one thread), nothing else computed: every view's raw
-  read as ``ingest_view`` reads it (``tasks.integrity.read_chunk_windows`` into a reused buffer: the
-  chunk files read without Zarr, with or without their CRC32C) from each capture, and every view's
-  textures written to a BTF-layout array as ``ingest_view`` writes them
-  (``tasks.stores.write_chunk_aligned``: the chunk files written past the page cache); fastest of
+  one thread), nothing else computed: every view's raw read as ``ingest_view`` reads it
+  (``tasks.integrity.read_chunk_windows`` into a reused buffer: the chunk files read without Zarr, with
+  or without their CRC32C) from each capture, and every view's textures written to a BTF-layout array
+  as ``ingest_view`` writes them (``tasks.stores.write_chunk_aligned``: the chunk files written past the
+  page cache); fastest of
   ``--repeats`` interleaved runs (other work on the machine only adds time), and the difference set
   against the ingest's worker CPU seconds;
 * the codec's own rates on one raw chunk (645 KB): ``google_crc32c.value`` and the ``np.append`` copy

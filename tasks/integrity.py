@@ -445,7 +445,7 @@ def _plain_chunks(array: zarr.Array, dtype: np.dtype) -> str | None:
     return local if ok else None
 
 
-def _read_chunk_file(path: str, part: np.ndarray, crc: bool = True) -> bool:
+def _read_chunk_file(path: str, part: np.ndarray, crc: bool) -> bool:
     """Read a plain chunk file into ``part`` (contiguous ``uint8``): whether its size and CRC32C (``crc``) match."""
     import google_crc32c
 
